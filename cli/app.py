@@ -1,0 +1,186 @@
+"""`admc-pipe`: the command line. Thin: parse, call pipeline functions, print."""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from admc.pipeline import config as config_mod
+
+app = typer.Typer(help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+console = Console()
+err = Console(stderr=True)
+
+ConfigOpt = Annotated[Optional[Path], typer.Option("--config", "-c", help="TOML config overlaying configs/default.toml.")]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", "-s", help="Override a value: section.key=value (repeatable).")]
+SchedulerOpt = Annotated[Optional[str], typer.Option(help="sync | threads | processes | a dask scheduler address.")]
+
+
+def _user_errors(fn):
+    """Known, user-caused failures print one clear line and exit 2 instead of a traceback."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        from admc.pipeline.scenes import SceneError
+        from admc.pipeline.variants import VariantError
+        from admc.pipeline.stages import StageError
+        from admc.stores.exr import ExrError
+        from admc.stores.patches import PatchStoreError
+        try:
+            return fn(*args, **kwargs)
+        except (config_mod.ConfigError, SceneError, VariantError, ExrError, PatchStoreError, StageError,
+                FileNotFoundError) as exc:
+            err.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(2)
+    return wrapper
+
+
+def _load(config: Optional[Path], overrides: Optional[list[str]], scheduler: Optional[str] = None):
+    items = list(overrides or [])
+    if scheduler:
+        items.append(f"run.scheduler={scheduler}")
+    return config_mod.load_config(config, items)
+
+
+@app.command()
+@_user_errors
+def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
+    """Render the scene corpus: one multi-layer EXR + JSON sidecar per (scene, spp), plus a reference."""
+    from admc.pipeline.stages import render_corpus
+
+    cfg = _load(config, set_, scheduler)
+    result = render_corpus(cfg)
+    table = Table(title=f"rendered {len(result.sidecars)} images of {len(result.scenes)} scenes")
+    for column in ("scene", "spp", "specular", "seconds", "Msamples/s", "non-finite"):
+        table.add_column(column)
+    for s in result.sidecars:
+        bad = sum(sum(counts.values()) for counts in s["nonfinite"].values())
+        table.add_row(s["scene_id"], f"{s['spp']}{' (ref)' if s['reference'] else ''}",
+                      "yes" if s["has_specular"] else "no (skipped)", f"{s['render_seconds']:.2f}",
+                      f"{s['samples_per_second'] / 1e6:.2f}", str(bad))
+    console.print(table)
+    no_spec = sorted({s["scene_id"] for s in result.sidecars if not s["has_specular"]})
+    if no_spec:
+        console.print(f"no glossy, conductor or dielectric BSDF, so no specular buffer: {', '.join(no_spec)}")
+    console.print(f"EXRs: {result.renders_dir}  ({result.executed} rendered now, {result.cached} cached)")
+
+
+def _print_dataset(result, summary_only: bool = False) -> None:
+    from admc.pipeline.dataset_report import contact_sheet
+    from admc.stores.patches import store_summary
+
+    summary = store_summary(result.store)
+    table = Table(title=f"patch store {result.store}")
+    for column in ("split", "scenes", "diffuse rows", "specular rows", "rows per spp"):
+        table.add_column(column)
+    for split, entry in summary["splits"].items():
+        per_spp = ", ".join(f"{spp}: {n}" for spp, n in sorted(entry["rows_per_spp"].items()))
+        table.add_row(split, str(len(entry["scenes"])), str(entry["rows"]["diffuse"]),
+                      str(entry["rows"]["specular"]), per_spp)
+    console.print(table)
+    ranges = Table(title="stored value ranges (transformed, all splits)")
+    for column in ("array", "min", "max"):
+        ranges.add_column(column)
+    merged: dict = {}
+    for entry in summary["splits"].values():
+        for name, (lo, hi) in entry["ranges"].items():
+            old = merged.get(name, (lo, hi))
+            merged[name] = (min(old[0], lo), max(old[1], hi))
+    for name, (lo, hi) in sorted(merged.items()):
+        ranges.add_row(name, f"{lo:.4g}", f"{hi:.4g}")
+    console.print(ranges)
+    handled = {k: v for k, v in summary["sanitization"].items() if any(n for n in v.values() if isinstance(n, int))}
+    console.print(f"sanitized values: {handled if handled else 'none'}")
+    for split in ("train", "val", "test"):
+        if not summary["splits"][split]["scenes"]:
+            console.print(f"[yellow]warning:[/] split {split!r} has no scenes (add scenes or change tile.split)")
+    sheet = contact_sheet(result.store, result.store.parent / "contact_sheet.png")
+    if sheet:
+        console.print(f"contact sheet (noisy | reference | albedo | normal): {sheet}")
+
+
+@app.command()
+@_user_errors
+def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
+            summary: Annotated[bool, typer.Option("--summary", help="Only summarise the existing store.")] = False) -> None:
+    """Render + tile as one graph: the corpus into the 128x128 FP16 Zarr patch store (cached, incremental)."""
+    from admc.pipeline.stages import build_dataset, existing_dataset
+
+    cfg = _load(config, set_, scheduler)
+    result = existing_dataset(cfg) if summary else build_dataset(cfg)
+    if not summary:
+        console.print(f"{result.executed} tasks run, {result.cached} cached; renders in {result.renders_dir}")
+    _print_dataset(result)
+
+
+@app.command()
+@_user_errors
+def tile(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
+    """Tile already-rendered EXR sets into the patch store (renders nothing: run `render` first)."""
+    from admc.pipeline.stages import build_dataset
+
+    cfg = _load(config, set_, scheduler)
+    result = build_dataset(cfg, render_missing=False)
+    console.print(f"{result.executed} tile tasks run, {result.cached} cached")
+    _print_dataset(result)
+
+
+@app.command()
+@_user_errors
+def cache(config: ConfigOpt = None, set_: SetOpt = None,
+          clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
+          stage: Annotated[Optional[str], typer.Option(help="Only this stage (render, tile, ...).")] = None) -> None:
+    """Show what is cached (per stage: entries and size), or clear it."""
+    from admc.pipeline.stages import open_cache
+
+    cfg = _load(config, set_)
+    store = open_cache(cfg)
+    if clear:
+        removed = store.clear(stage)
+        console.print(f"removed {removed} cached entr{'y' if removed == 1 else 'ies'} from {store.root}"
+                      f"{f' (stage {stage})' if stage else ''}")
+        return
+    entries = [e for e in store.entries() if stage is None or e["stage"] == stage]
+    table = Table(title=f"cache at {store.root}")
+    for column in ("stage", "entries", "MiB", "newest"):
+        table.add_column(column)
+    for name in sorted({e["stage"] for e in entries}):
+        rows = [e for e in entries if e["stage"] == name]
+        table.add_row(name, str(len(rows)), f"{sum(e['bytes'] for e in rows) / 2**20:.1f}",
+                      max(str(e["created"]) for e in rows))
+    console.print(table if entries else f"cache at {store.root} is empty")
+
+
+@app.command("config")
+@_user_errors
+def show_config(config: ConfigOpt = None, set_: SetOpt = None) -> None:
+    """Print the resolved configuration (defaults, your config file and --set overrides merged)."""
+    cfg = _load(config, set_)
+    for section, values in cfg.to_dict().items():
+        console.print(f"[bold][{section}][/]")
+        for key, value in values.items():
+            console.print(f"{key} = {list(value) if isinstance(value, tuple) else value!r}", markup=False)
+
+
+def _not_built(name: str, issue: int, what: str):
+    def command() -> None:
+        err.print(f"[yellow]admc-pipe {name} is not built yet[/] (issue #{issue}: {what}).")
+        raise typer.Exit(2)
+    command.__doc__ = f"(not built yet, issue #{issue}) {what}"
+    return command
+
+
+app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
+    _not_built("train", 4, "train the CFM generator and WGAN-GP critic (--stage pretrain|finetune)"))
+app.command("eval", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
+    _not_built("eval", 5, "Table 1 against the noisy input and OIDN, error vs time, HTML report"))
+app.command("denoise", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
+    _not_built("denoise", 5, "denoise your own EXR renders"))
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,1 @@
+"""Shipped TOML configs (package data): default.toml is the base every other config overlays."""

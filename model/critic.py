@@ -1,0 +1,83 @@
+"""The "VGG 128" WGAN critic of one branch.
+
+Five stride-2 stages take a square patch down by 32 (128 -> 4), then two linear layers give one
+unbounded score per sample. The authors used BatchNorm; admc defaults to a per-sample layer norm
+because the WGAN-GP penalty is defined per sample and BatchNorm couples the samples of a batch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from .generator import scaled_kaiming_
+
+NORMS = ("none", "layer", "batch")
+DOWNSAMPLING = 32  # five stride-2 convs
+HIDDEN_UNITS = 100
+
+
+@dataclass(frozen=True)
+class CriticConfig:
+    """Width, normalisation and input patch size; the defaults are the paper's (~14.5 M params)."""
+
+    base_channels: int = 64
+    norm: str = "layer"
+    patch_size: int = 128
+
+    def __post_init__(self) -> None:
+        if self.norm not in NORMS:
+            raise ValueError(f"CriticConfig.norm: {self.norm!r} is not one of {NORMS}")
+        if not isinstance(self.base_channels, int) or self.base_channels < 1:
+            raise ValueError(f"CriticConfig.base_channels: must be a positive int, got {self.base_channels!r}")
+        if not isinstance(self.patch_size, int) or self.patch_size < DOWNSAMPLING or self.patch_size % DOWNSAMPLING:
+            raise ValueError(f"CriticConfig.patch_size: must be a positive multiple of {DOWNSAMPLING}, "
+                             f"got {self.patch_size!r}")
+
+
+def _norm(kind: str, channels: int) -> nn.Module:
+    if kind == "layer":
+        # GroupNorm with one group = layer norm over (C, H, W) per sample, per-channel affine,
+        # independent of the spatial size.
+        return nn.GroupNorm(1, channels)
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    return nn.Identity()
+
+
+class Critic(nn.Module):
+    """conv3x3 3->b, LReLU; conv4x4/s2 b->b; then (conv3x3 s1, conv4x4 s2) at 2b, 4b, 8b, 8b;
+    each conv after the first with norm and LReLU(0.2); Linear(8b*(P/32)^2, 100), LReLU, Linear(100, 1)."""
+
+    def __init__(self, config: CriticConfig = CriticConfig()) -> None:
+        super().__init__()
+        self.config = config
+        b = config.base_channels
+        layers: list[nn.Module] = [nn.Conv2d(3, b, 3, padding=1), nn.LeakyReLU(0.2, inplace=True)]
+        layers += self._stage(b, b, 4, 2, config.norm)
+        previous = b
+        for width in (2 * b, 4 * b, 8 * b, 8 * b):
+            layers += self._stage(previous, width, 3, 1, config.norm)
+            layers += self._stage(width, width, 4, 2, config.norm)
+            previous = width
+        self.features = nn.Sequential(*layers)
+        side = config.patch_size // DOWNSAMPLING
+        self.classifier = nn.Sequential(
+            nn.Linear(previous * side * side, HIDDEN_UNITS),
+            nn.LeakyReLU(0.2, inplace=True),
+            nn.Linear(HIDDEN_UNITS, 1),
+        )
+        scaled_kaiming_(self, 1.0)  # the authors' critic: plain Kaiming fan-in
+
+    @staticmethod
+    def _stage(c_in: int, c_out: int, kernel: int, stride: int, norm: str) -> list[nn.Module]:
+        return [nn.Conv2d(c_in, c_out, kernel, stride=stride, padding=1), _norm(norm, c_out),
+                nn.LeakyReLU(0.2, inplace=True)]
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(N, 3, P, P) -> (N, 1) scores; P must be the configured patch size (the linear layer fixes it)."""
+        p = self.config.patch_size
+        if x.ndim != 4 or tuple(x.shape[1:]) != (3, p, p):
+            raise ValueError(f"Critic: input must be (N, 3, {p}, {p}), got {tuple(x.shape)}")
+        return self.classifier(torch.flatten(self.features(x), 1))

@@ -1,0 +1,31 @@
+"""EncoderNet: turns the 7 auxiliary feature channels into the 32-channel condition map.
+
+One encoder per branch is shared by every CFM layer of that branch, so the features are encoded
+once per forward pass rather than once per layer. It runs at full resolution (no striding):
+CFM modulates per pixel, so the condition must stay aligned with the image.
+"""
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+# Channel order of the auxiliary features everywhere in admc: normal(3), depth(1), albedo(3).
+FEATURE_CHANNELS = 7
+
+
+class EncoderNet(nn.Module):
+    """conv3x3 7->hidden, LReLU(0.1), 3 x [conv1x1 hidden->hidden, LReLU(0.1)], conv1x1 hidden->out."""
+
+    def __init__(self, hidden_channels: int = 128, out_channels: int = 32) -> None:
+        super().__init__()
+        layers: list[nn.Module] = [
+            nn.Conv2d(FEATURE_CHANNELS, hidden_channels, 3, padding=1),
+            nn.LeakyReLU(0.1, inplace=True),
+        ]
+        for _ in range(3):
+            layers += [nn.Conv2d(hidden_channels, hidden_channels, 1), nn.LeakyReLU(0.1, inplace=True)]
+        # No final activation: the condition map may be negative, the CFM nets decide its use.
+        layers.append(nn.Conv2d(hidden_channels, out_channels, 1))
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, features: Tensor) -> Tensor:
+        return self.layers(features)

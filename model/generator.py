@@ -1,0 +1,173 @@
+"""The CFM denoiser of one branch (diffuse or specular) and its ablation variants.
+
+Architecture as in the authors' code (SFTGAN-style): a head conv, a body of residual blocks whose
+convs are preceded by conditioned feature modulation (CFM) driven by a shared EncoderNet, a global
+skip from the head over the body, and a tail ending in ReLU (targets are log1p radiance, >= 0).
+The `mode` switch builds the paper's ablations (Fig. 12) from the same code.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from .encoder import FEATURE_CHANNELS, EncoderNet
+
+COLOR_CHANNELS = 3
+# "cfm": full model; "none": no auxiliary features; "concat": features concatenated to the input;
+# "shift": CFM with beta only (gamma fixed to 1); "scale": CFM with gamma only (beta fixed to 0).
+MODES = ("cfm", "none", "concat", "shift", "scale")
+MODULATED_MODES = ("cfm", "shift", "scale")
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """Size and ablation mode of one branch's generator; the defaults are the paper's (~1.53 M params)."""
+
+    channels: int = 64
+    blocks: int = 16
+    cond_channels: int = 32
+    encoder_channels: int = 128
+    mode: str = "cfm"
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"GeneratorConfig.mode: {self.mode!r} is not one of {MODES}")
+        for name in ("channels", "blocks", "cond_channels", "encoder_channels"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"GeneratorConfig.{name}: must be a positive int, got {value!r}")
+
+    @property
+    def modulated(self) -> bool:
+        return self.mode in MODULATED_MODES
+
+
+def _condition_net(cond_channels: int, channels: int) -> nn.Sequential:
+    """The two-layer conv that maps the condition map to one modulation (gamma or beta) map."""
+    return nn.Sequential(
+        nn.Conv2d(cond_channels, cond_channels, 1),
+        nn.LeakyReLU(0.1, inplace=True),
+        nn.Conv2d(cond_channels, channels, 1),
+    )
+
+
+class CFMLayer(nn.Module):
+    """Conditioned feature modulation: x * (gamma + 1) + beta, gamma and beta computed per pixel.
+
+    gamma is applied as 1 + scale so a zero scale net output is the identity (the authors' choice,
+    which also makes a freshly initialised, small-weight network start near the identity).
+    """
+
+    def __init__(self, channels: int, cond_channels: int, use_scale: bool = True, use_shift: bool = True) -> None:
+        super().__init__()
+        if not (use_scale or use_shift):
+            raise ValueError("CFMLayer needs a scale net, a shift net or both")
+        self.scale = _condition_net(cond_channels, channels) if use_scale else None
+        self.shift = _condition_net(cond_channels, channels) if use_shift else None
+
+    def forward(self, x: Tensor, cond: Tensor) -> Tensor:
+        if self.scale is not None:
+            x = x * (self.scale(cond) + 1)
+        if self.shift is not None:
+            x = x + self.shift(cond)
+        return x
+
+
+class ResidualBlock(nn.Module):
+    """[CFM] -> conv3x3 -> ReLU -> [CFM] -> conv3x3, out = x + f. No batch norm (as in EDSR/SFTGAN)."""
+
+    def __init__(self, channels: int, cfm: tuple[CFMLayer, CFMLayer] | None) -> None:
+        super().__init__()
+        self.cfm = nn.ModuleList(cfm) if cfm is not None else None
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.relu = nn.ReLU(inplace=True)
+
+    def forward(self, x: Tensor, cond: Tensor | None) -> Tensor:
+        f = self.cfm[0](x, cond) if self.cfm is not None else x
+        f = self.relu(self.conv1(f))
+        f = self.cfm[1](f, cond) if self.cfm is not None else f
+        return x + self.conv2(f)
+
+
+def scaled_kaiming_(module: nn.Module, scale: float) -> None:
+    """Kaiming normal (fan-in) init of every conv and linear layer, weights times `scale`, zero biases.
+
+    The authors use scale 0.1 for the generator: a deep residual stack then starts close to the
+    identity and trains stably without normalisation layers.
+    """
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            nn.init.kaiming_normal_(m.weight, a=0.0, mode="fan_in")
+            with torch.no_grad():
+                m.weight.mul_(scale)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
+class Generator(nn.Module):
+    """One branch's denoiser: `forward(noisy, features)` -> denoised, same (N, 3, H, W) shape.
+
+    Fully convolutional with same-padding everywhere, so any H and W work.
+    """
+
+    def __init__(self, config: GeneratorConfig = GeneratorConfig()) -> None:
+        super().__init__()
+        self.config = config
+        c = config.channels
+        in_channels = COLOR_CHANNELS + FEATURE_CHANNELS if config.mode == "concat" else COLOR_CHANNELS
+        self.encoder = EncoderNet(config.encoder_channels, config.cond_channels) if config.modulated else None
+        self.head = nn.Conv2d(in_channels, c, 3, padding=1)
+        self.blocks = nn.ModuleList(ResidualBlock(c, self._cfm_pair()) for _ in range(config.blocks))
+        self.body_cfm = self._cfm() if config.modulated else None
+        self.body_conv = nn.Conv2d(c, c, 3, padding=1)
+        self.tail = nn.Sequential(
+            nn.Conv2d(c, c, 3, padding=1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(c, COLOR_CHANNELS, 3, padding=1),
+            nn.ReLU(inplace=True),
+        )
+        scaled_kaiming_(self, 0.1)
+
+    def _cfm(self) -> CFMLayer:
+        mode = self.config.mode
+        return CFMLayer(self.config.channels, self.config.cond_channels,
+                        use_scale=mode in ("cfm", "scale"), use_shift=mode in ("cfm", "shift"))
+
+    def _cfm_pair(self) -> tuple[CFMLayer, CFMLayer] | None:
+        return (self._cfm(), self._cfm()) if self.config.modulated else None
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Split for the authors' optimiser: the conditioned body and encoder ("body", 5x LR) and
+        the head and tail ("head_tail", base LR, frozen early in training)."""
+        outer = {id(p) for m in (self.head, self.tail) for p in m.parameters()}
+        return {
+            "body": [p for p in self.parameters() if id(p) not in outer],
+            "head_tail": [p for p in self.parameters() if id(p) in outer],
+        }
+
+    def _check_inputs(self, noisy: Tensor, features: Tensor | None) -> None:
+        if noisy.ndim != 4 or noisy.shape[1] != COLOR_CHANNELS:
+            raise ValueError(f"Generator: noisy must be (N, {COLOR_CHANNELS}, H, W), got {tuple(noisy.shape)}")
+        if self.config.mode == "none":
+            return
+        if features is None:
+            raise ValueError(f"Generator (mode {self.config.mode!r}): features are required")
+        expected = (noisy.shape[0], FEATURE_CHANNELS, *noisy.shape[2:])
+        if tuple(features.shape) != expected:
+            raise ValueError(f"Generator: features must be {expected} to match noisy, got {tuple(features.shape)}")
+
+    def forward(self, noisy: Tensor, features: Tensor | None = None) -> Tensor:
+        """`features` (normal, depth, albedo; 7 channels) may be omitted only in mode "none"."""
+        self._check_inputs(noisy, features)
+        x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else noisy
+        cond = self.encoder(features) if self.encoder is not None else None
+        head = self.head(x)
+        f = head
+        for block in self.blocks:
+            f = block(f, cond)
+        if self.body_cfm is not None:
+            f = self.body_cfm(f, cond)
+        return self.tail(head + self.body_conv(f))

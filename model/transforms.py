@@ -1,0 +1,190 @@
+"""Data transforms between rendered buffers and network tensors (pure NumPy, HWC float arrays).
+
+Radiance goes into a log domain so that HDR values fit FP16 with even relative precision; diffuse is
+first demodulated by albedo (the network sees texture-free illumination, as in the authors' code).
+Features are mapped to [0, 1]. Every value that could turn into NaN/Inf is handled here, counted,
+and reported by the caller: nothing non-finite passes on silently.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+EPS = 0.00316
+"""Added to albedo before demodulating diffuse (value from the authors' code)."""
+
+FP16_MAX = 65504.0
+"""Largest finite float16."""
+
+RADIANCE_MAX = FP16_MAX
+"""Linear radiance is clamped here (+Inf and huge fireflies alike), so every stored value also
+inverts to an FP16-representable linear value. Directly seen emitters above it are clipped."""
+
+FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
+"""The authors' input order for the 7 auxiliary feature channels."""
+
+SPEC_VERSION = 1
+
+# kind -> (value for NaN, lower bound, upper bound). -Inf goes to the lower bound, +Inf to the upper
+# one (0 for depth: a hit without a finite distance carries no depth and is treated as environment).
+_RULES: dict[str, tuple[float, float, float | None]] = {
+    "diffuse": (0.0, 0.0, RADIANCE_MAX),
+    "specular": (0.0, 0.0, RADIANCE_MAX),
+    "albedo": (0.0, 0.0, 1.0),
+    "normal": (0.0, -1.0, 1.0),
+    "depth": (0.0, 0.0, None),
+    "coverage": (0.0, 0.0, 1.0),
+}
+
+
+def transform_spec() -> dict:
+    """Every transform and parameter, JSON-ready: stored in the patch store, checked by models."""
+    return {
+        "version": SPEC_VERSION,
+        "eps": EPS,
+        "radiance_max": RADIANCE_MAX,
+        "fp16_max": FP16_MAX,
+        "sanitize": {kind: {"nan": nan, "min": lo, "max": hi} for kind, (nan, lo, hi) in _RULES.items()},
+        "diffuse": "log1p(clip(diffuse, 0, radiance_max) / (albedo + eps)), albedo = clip(albedo, 0, 1)",
+        "diffuse_inverse": "expm1(d) * (albedo + eps)",
+        "specular": "log1p(clip(specular, 0, radiance_max))",
+        "specular_inverse": "expm1(s)",
+        "normal": "clip((nan_to_0(n) + 1) / 2, 0, 1)",
+        "depth": "depth / max(depth over hits of the whole image); hit = coverage > 0 and depth > 0 "
+                 "and finite; other pixels 1.0; no hits: all 1.0",
+        "albedo": "clip(nan_to_0(albedo), 0, 1)",
+        "feature_channels": list(FEATURE_CHANNELS),
+    }
+
+
+TRANSFORM_PARAMS = transform_spec()
+
+
+def _kind(name: str) -> str:
+    kind = name.rsplit("_", 1)[-1]
+    if kind not in _RULES:
+        raise ValueError(f"sanitize: unknown buffer {name!r} (its last '_' part must be one of {sorted(_RULES)})")
+    return kind
+
+
+def sanitize(x: np.ndarray, name: str) -> tuple[np.ndarray, dict[str, int]]:
+    """Replace NaN, +-Inf and out-of-range values by the rule of the buffer's kind; count each case.
+
+    `name` is a buffer name such as "diffuse", "ref_specular" or "albedo"; its last "_" part picks the
+    rule. Returns a new float32 array and {"nan", "posinf", "neginf", "below_min", "above_max"} counts.
+    """
+    nan_to, lo, hi = _RULES[_kind(name)]
+    x = np.asarray(x, dtype=np.float32)
+    nan = np.isnan(x)
+    posinf = np.isposinf(x)
+    neginf = np.isneginf(x)
+    finite = ~(nan | posinf | neginf)
+    below = finite & (x < lo)
+    above = finite & (x > hi) if hi is not None else np.zeros_like(finite)
+    clean = np.where(finite, x, np.float32(nan_to))
+    clean[posinf] = hi if hi is not None else 0.0
+    clean[neginf] = lo
+    clean = np.clip(clean, lo, hi) if hi is not None else np.maximum(clean, lo)
+    counts = {
+        "nan": int(nan.sum()),
+        "posinf": int(posinf.sum()),
+        "neginf": int(neginf.sum()),
+        "below_min": int(below.sum()),
+        "above_max": int(above.sum()),
+    }
+    return clean.astype(np.float32, copy=False), counts
+
+
+def _require_finite(func: str, **arrays: np.ndarray) -> None:
+    for name, a in arrays.items():
+        bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+        if bad:
+            raise ValueError(f"{func}: {name} has {bad} non-finite values; call sanitize({name!r}) first")
+
+
+def _demodulation_albedo(albedo: np.ndarray) -> np.ndarray:
+    """Albedo as used to (de)modulate diffuse: the same clipped values as the albedo feature."""
+    return np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0) + EPS
+
+
+def diffuse_forward(diffuse: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """log1p(diffuse / (albedo + eps)) on finite inputs; computed in float64 so huge inputs stay finite."""
+    _require_finite("diffuse_forward", diffuse=diffuse, albedo=albedo)
+    d = np.clip(np.asarray(diffuse, dtype=np.float64), 0.0, RADIANCE_MAX)
+    return np.log1p(d / _demodulation_albedo(albedo)).astype(np.float32)
+
+
+def diffuse_inverse(d: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """expm1(d) * (albedo + eps): linear diffuse radiance from the log domain."""
+    _require_finite("diffuse_inverse", d=d, albedo=albedo)
+    return (np.expm1(np.asarray(d, dtype=np.float64)) * _demodulation_albedo(albedo)).astype(np.float32)
+
+
+def specular_forward(specular: np.ndarray) -> np.ndarray:
+    """log1p(specular) on finite inputs, negatives to 0."""
+    _require_finite("specular_forward", specular=specular)
+    return np.log1p(np.clip(np.asarray(specular, dtype=np.float64), 0.0, RADIANCE_MAX)).astype(np.float32)
+
+
+def specular_inverse(s: np.ndarray) -> np.ndarray:
+    """expm1(s): linear specular radiance from the log domain."""
+    _require_finite("specular_inverse", s=s)
+    return np.expm1(np.asarray(s, dtype=np.float64)).astype(np.float32)
+
+
+def normal_forward(normal: np.ndarray) -> np.ndarray:
+    """Shading normals from [-1, 1] to [0, 1]; NaN -> 0 first (then 0.5), +-Inf end at 1 or 0."""
+    n = np.nan_to_num(np.asarray(normal, dtype=np.float32), nan=0.0, posinf=1.0, neginf=-1.0)
+    return np.clip((n + 1.0) * 0.5, 0.0, 1.0).astype(np.float32)
+
+
+def depth_forward(depth: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """Depth / (max depth over the whole image's hits); environment pixels 1.0 (infinitely far).
+
+    Call on the whole image before tiling, so training patches and full-image inference share one
+    scale. A hit is coverage > 0 with a finite depth > 0; an image without hits is all 1.0.
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    coverage = np.asarray(coverage, dtype=np.float32)
+    if depth.shape != coverage.shape:
+        raise ValueError(f"depth_forward: depth shape {depth.shape} != coverage shape {coverage.shape}")
+    hit = (coverage > 0) & np.isfinite(depth) & (depth > 0)
+    if not hit.any():
+        return np.ones_like(depth)
+    scale = np.float64(depth[hit].max())
+    out = np.ones(depth.shape, dtype=np.float32)
+    out[hit] = np.clip(depth[hit] / scale, 0.0, 1.0)
+    return out
+
+
+def albedo_forward(albedo: np.ndarray) -> np.ndarray:
+    """Albedo clipped to [0, 1], NaN -> 0."""
+    a = np.nan_to_num(np.asarray(albedo, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    return np.clip(a, 0.0, 1.0)
+
+
+def features(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """The 7 feature channels (H, W, 7) in the authors' order: normal(3), depth(1), albedo(3)."""
+    if normal.shape[-1] != 3 or albedo.shape[-1] != 3 or depth.shape[-1] != 1:
+        raise ValueError(
+            f"features: expected normal (H,W,3), depth (H,W,1), albedo (H,W,3); got "
+            f"{normal.shape}, {depth.shape}, {albedo.shape}"
+        )
+    return np.concatenate(
+        [normal_forward(normal), depth_forward(depth, coverage), albedo_forward(albedo)], axis=-1
+    )
+
+
+def to_fp16(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cast to float16, clamping values beyond +-65504 first (counted) so no Inf is ever produced.
+
+    NaN is refused: it must have been sanitized, not cast.
+    """
+    x = np.asarray(x, dtype=np.float32)
+    nan = int(np.isnan(x).sum())
+    if nan:
+        raise ValueError(f"to_fp16: {nan} NaN values; sanitize before casting")
+    beyond = np.abs(x) > FP16_MAX
+    n_clamped = int(beyond.sum())
+    if n_clamped:
+        x = np.clip(x, -FP16_MAX, FP16_MAX)
+    return x.astype(np.float16), n_clamped

@@ -1,0 +1,181 @@
+"""Typed, validated run configuration.
+
+`configs/default.toml` holds every value; a user config overlays it and `--set section.key=value`
+overrides overlay both. The dataclasses below are the schema: an unknown key, a value of the wrong
+type or out of range is a ConfigError that names the key, so a typo never silently runs the defaults.
+"""
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+
+class ConfigError(ValueError):
+    pass
+
+
+def _require(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"config key '{key}': {message}")
+
+
+@dataclass(frozen=True)
+class CorpusConfig:
+    families: tuple[str, ...]
+    n_scenes: int
+    seed: int
+    xml_dirs: tuple[str, ...]
+
+    def check(self) -> None:
+        _require(self.n_scenes >= 0, "corpus.n_scenes", f"must be >= 0, got {self.n_scenes}")
+        _require(self.n_scenes == 0 or len(self.families) > 0, "corpus.families", "empty but n_scenes > 0")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    variant: str
+    resolution: tuple[int, int]
+    spp: tuple[int, ...]
+    reference_spp: int
+    max_depth: int
+    seed: int
+    max_spp_per_pass: int
+
+    def check(self) -> None:
+        w, h = self.resolution
+        _require(w >= 1 and h >= 1, "render.resolution", f"must be positive, got {list(self.resolution)}")
+        _require(len(self.spp) > 0, "render.spp", "needs at least one sample count")
+        _require(all(s >= 1 for s in self.spp), "render.spp", f"every spp must be >= 1, got {list(self.spp)}")
+        _require(len(set(self.spp)) == len(self.spp), "render.spp", f"duplicates in {list(self.spp)}")
+        _require(self.reference_spp > max(self.spp), "render.reference_spp",
+                 f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
+        _require(1 <= self.max_depth <= 64, "render.max_depth", f"must be in 1..64, got {self.max_depth}")
+        _require(self.max_spp_per_pass >= 1, "render.max_spp_per_pass", "must be >= 1")
+
+
+@dataclass(frozen=True)
+class TileConfig:
+    store: str
+    patch_size: int
+    crops_per_scene: int
+    candidates_per_crop: int
+    split: tuple[float, float, float]
+    seed: int
+
+    def check(self) -> None:
+        _require(self.patch_size >= 8, "tile.patch_size", f"must be >= 8, got {self.patch_size}")
+        _require(self.crops_per_scene >= 1, "tile.crops_per_scene", "must be >= 1")
+        _require(self.candidates_per_crop >= 1, "tile.candidates_per_crop", "must be >= 1")
+        _require(all(f >= 0 for f in self.split) and sum(self.split) > 0, "tile.split",
+                 f"fractions must be >= 0 and not all 0, got {list(self.split)}")
+        _require(bool(self.store), "tile.store", "must not be empty")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    workdir: str
+    scheduler: str
+    workers: int
+
+    def check(self) -> None:
+        _require(self.workers >= 0, "run.workers", f"must be >= 0 (0 = auto), got {self.workers}")
+        _require(bool(self.scheduler), "run.scheduler", "must not be empty")
+
+
+@dataclass(frozen=True)
+class Config:
+    corpus: CorpusConfig
+    render: RenderConfig
+    tile: TileConfig
+    run: RunConfig
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def workdir_path(self, relative: str) -> Path:
+        """A path from the config: absolute as given, else under run.workdir."""
+        path = Path(relative)
+        return path if path.is_absolute() else Path(self.run.workdir) / path
+
+
+def _coerce(value, annotation, key: str):
+    """Check a TOML value against a field's type; TOML arrays become tuples."""
+    origin = typing.get_origin(annotation)
+    if origin is tuple:
+        args = typing.get_args(annotation)
+        _require(isinstance(value, (list, tuple)), key, f"expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        _require(len(value) == len(args), key, f"expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if annotation is float:
+        _require(isinstance(value, (int, float)) and not isinstance(value, bool), key, f"expected a number, got {value!r}")
+        return float(value)
+    _require(isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
+             key, f"expected {annotation.__name__}, got {value!r}")
+    return value
+
+
+def _merge(base: dict, overlay: dict, source: str) -> dict:
+    merged = {section: dict(values) for section, values in base.items()}
+    for section, values in overlay.items():
+        if section not in merged:
+            raise ConfigError(f"unknown config section '{section}' in {source}; known: {', '.join(merged)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"config key '{section}' in {source}: expected a [{section}] table")
+        for key, value in values.items():
+            if key not in merged[section]:
+                raise ConfigError(f"unknown config key '{section}.{key}' in {source}; "
+                                  f"known: {', '.join(merged[section])}")
+            merged[section][key] = value
+    return merged
+
+
+def _parse_override(item: str) -> tuple[str, str, object]:
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} must look like section.key=value")
+    dotted, raw = item.split("=", 1)
+    if dotted.count(".") != 1:
+        raise ConfigError(f"override {item!r}: key must be section.key")
+    section, key = dotted.strip().split(".")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # a bare string such as a scheduler address
+    return section, key, value
+
+
+def _read_toml(path: Path) -> dict:
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {path}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+
+
+def default_config_text() -> str:
+    return resources.files("admc.configs").joinpath("default.toml").read_text()
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Config:
+    """default.toml, overlaid by `path` (if given), overlaid by `section.key=value` overrides."""
+    values = tomllib.loads(default_config_text())
+    if path is not None:
+        values = _merge(values, _read_toml(Path(path)), str(path))
+    for item in overrides:
+        section, key, value = _parse_override(item)
+        values = _merge(values, {section: {key: value}}, f"--set {item}")
+    sections = {}
+    for field in dataclasses.fields(Config):
+        cls = typing.get_type_hints(Config)[field.name]
+        hints = typing.get_type_hints(cls)
+        section = cls(**{name: _coerce(values[field.name][name], hints[name], f"{field.name}.{name}")
+                         for name in hints})
+        section.check()
+        sections[field.name] = section
+    return Config(**sections)

@@ -1,0 +1,139 @@
+"""The render stage: one cached task per (scene, spp) writes a multi-layer EXR and a JSON sidecar.
+
+Noisy inputs are stored in half precision (what the patch store keeps anyway), references in
+float32. Each (scene, spp) gets its own seed derived from the base seed, so the noise of the inputs
+and the reference is independent. The scene is analysed first: a scene with no glossy, conductor or
+dielectric BSDF renders no specular buffer at all.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from admc.pipeline import integrator, scenes
+from admc.pipeline.cache import Task, code_version
+from admc.pipeline.config import Config
+from admc.pipeline.scenes import SceneSpec
+from admc.pipeline.variants import use_variant
+from admc.stores import exr
+
+EXR_NAME = "render.exr"
+SIDECAR_NAME = "render.json"
+FP16_MAX = 65504.0
+RENDER_CODE = code_version(integrator, scenes, exr)
+
+
+def derive_seed(base_seed: int, scene_id: str, spp: int, reference: bool) -> int:
+    """A 31-bit seed, independent per (scene, spp, role), identical on every machine."""
+    text = f"{base_seed}/{scene_id}/{spp}/{'ref' if reference else 'noisy'}"
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little") & 0x7FFFFFFF
+
+
+def _half_safe(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], int]:
+    """Clamp finite values beyond the FP16 range so a half EXR never invents inf; count them."""
+    clamped, out = 0, {}
+    for name, arr in layers.items():
+        finite = np.isfinite(arr)
+        over = finite & (np.abs(arr) > FP16_MAX)
+        clamped += int(over.sum())
+        out[name] = np.where(over, np.sign(arr) * FP16_MAX, arr).astype(np.float32)
+    return out, clamped
+
+
+def view_space_normals(normal: np.ndarray, scene) -> np.ndarray:
+    """World-space normals to the camera's view space: x right, y up, z toward the viewer.
+
+    Why: in view space an image flip or transpose is a sign flip or swap of normal components, so
+    training can augment patches consistently; world-space normals have no relation to image axes.
+    Mitsuba's camera frame is x left, y up, z forward; a 180-degree turn about y gives ours.
+    """
+    to_world = np.array(scene.sensors()[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
+    rotation = to_world / np.linalg.norm(to_world, axis=0, keepdims=True)
+    camera = normal.astype(np.float64) @ rotation
+    return (camera * np.array([-1.0, 1.0, -1.0])).astype(np.float32)
+
+
+def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int, reference: bool,
+               variant: str, max_depth: int, max_spp_per_pass: int) -> dict:
+    """Task body: render one (scene, spp) into out_dir/render.exr + render.json."""
+    spec = SceneSpec(**{**scene, "resolution": tuple(scene["resolution"])})
+    active = use_variant(variant)
+    integrator.register()
+    loaded = scenes.load_scene(spec)
+    needs = scenes.analyse(loaded)
+    start = time.perf_counter()
+    layers = integrator.render_buffers(loaded, spp, seed, split=needs.has_specular, max_depth=max_depth,
+                                       max_spp_per_pass=max_spp_per_pass)
+    seconds = time.perf_counter() - start
+    layers["normal"] = view_space_normals(layers["normal"], loaded)
+    nonfinite = exr.nonfinite_report(layers)
+    clamped = 0
+    if not reference:
+        layers, clamped = _half_safe(layers)
+    exr.write_exr(out_dir / EXR_NAME, layers, precision="float" if reference else "half",
+                  attributes={"admc_scene": spec.scene_id, "admc_spp": str(spp)})
+    sidecar = {
+        "scene_id": spec.scene_id, "family": spec.family, "scene_hash": scenes.scene_hash(spec),
+        "spp": spp, "reference": reference, "seed": seed, "variant": active,
+        "resolution": list(spec.resolution), "render_seconds": round(seconds, 4),
+        "samples_per_second": spp * spec.resolution[0] * spec.resolution[1] / max(seconds, 1e-9),
+        "has_specular": needs.has_specular, "bsdf_types": list(needs.bsdf_types),
+        "layers": sorted(layers), "nonfinite": nonfinite, "fp16_clamped": clamped,
+    }
+    (out_dir / SIDECAR_NAME).write_text(json.dumps(sidecar, indent=2))
+    return sidecar
+
+
+def corpus(cfg: Config) -> list[SceneSpec]:
+    """Procedural scenes, then the user's XML scenes."""
+    specs = scenes.procedural_corpus(list(cfg.corpus.families), cfg.corpus.n_scenes, cfg.corpus.seed,
+                                     cfg.render.resolution)
+    if cfg.corpus.xml_dirs:
+        specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), cfg.render.resolution)
+    return specs
+
+
+def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Task]]:
+    """Per scene: {"spp0004": task, ..., "reference": task}; keyed by the scene's content hash."""
+    variant = use_variant(cfg.render.variant)  # resolved here: "auto" must not hide which variant rendered
+    tasks: dict[str, dict[str, Task]] = {}
+    for spec in specs:
+        content = scenes.scene_hash(spec)
+        levels = [(f"spp{s:04d}", s, False) for s in cfg.render.spp]
+        levels.append(("reference", cfg.render.reference_spp, True))
+        tasks[spec.scene_id] = {}
+        for name, spp, reference in levels:
+            params = {
+                "scene": dataclasses.asdict(spec), "scene_hash": content, "spp": spp, "reference": reference,
+                "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
+                "variant": variant, "max_depth": cfg.render.max_depth,
+                "max_spp_per_pass": cfg.render.max_spp_per_pass,
+            }
+            label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp"
+            tasks[spec.scene_id][name] = Task(stage="render", label=label, fn=_render_task, params=params,
+                                              code_version=RENDER_CODE)
+    return tasks
+
+
+def _render_task(out_dir: Path, inputs: dict, *, scene_hash: str, **params) -> dict:
+    """The cached task: scene_hash is only part of the key (a changed XML file means a new render)."""
+    return render_one(out_dir, inputs, **params)
+
+
+def link_renders(tasks: dict[str, dict[str, Task]], published: dict[str, Path], dest: Path) -> Path:
+    """A readable view of the cache: dest/<scene_id>/spp0004.exr, .../reference.exr (symlinks)."""
+    for scene_id, levels in tasks.items():
+        folder = dest / scene_id
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, task in levels.items():
+            for suffix, source in ((".exr", EXR_NAME), (".json", SIDECAR_NAME)):
+                link = folder / (name + suffix)
+                if link.is_symlink() or link.exists():
+                    link.unlink()
+                link.symlink_to((published[task.key] / source).resolve())
+    return dest

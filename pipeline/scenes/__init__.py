@@ -1,0 +1,24 @@
+"""The scene corpus: seeded procedural families and users' Mitsuba XML scenes.
+
+Everything is derived from a small picklable `SceneSpec`, so render tasks can run in any
+process: `load_scene(spec)` builds the Mitsuba scene, `scene_hash(spec)` keys caches, and
+`analyse(scene)` says whether a specular buffer is needed.
+"""
+from .analysis import SceneNeeds, analyse
+from .families import FAMILIES, procedural_corpus
+from .loading import load_scene, scene_description, scene_hash
+from .spec import SceneError, SceneSpec
+from .xml_loader import xml_corpus
+
+__all__ = [
+    "FAMILIES",
+    "SceneError",
+    "SceneNeeds",
+    "SceneSpec",
+    "analyse",
+    "load_scene",
+    "procedural_corpus",
+    "scene_description",
+    "scene_hash",
+    "xml_corpus",
+]

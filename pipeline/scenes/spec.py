@@ -1,0 +1,35 @@
+"""What identifies a scene: a small, picklable spec from which everything else is derived.
+
+Dask ships specs to worker processes, so a spec holds only a name, a family, a seed, a film
+size and (for user scenes) a path; meshes, textures and Mitsuba objects are rebuilt from it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+XML_FAMILY = "xml"
+
+
+class SceneError(ValueError):
+    """A scene cannot be described or loaded; the message names the file or spec and the problem."""
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    scene_id: str
+    family: str
+    seed: int
+    resolution: tuple[int, int]
+    xml_path: str | None = None
+
+    def __post_init__(self) -> None:
+        width, height = self.resolution
+        if int(width) <= 0 or int(height) <= 0:
+            raise SceneError(f"scene {self.scene_id!r}: resolution must be positive, got {self.resolution}")
+        object.__setattr__(self, "resolution", (int(width), int(height)))
+        if (self.family == XML_FAMILY) != (self.xml_path is not None):
+            raise SceneError(f"scene {self.scene_id!r}: family 'xml' needs an xml_path and only it may have one")
+
+    @property
+    def is_xml(self) -> bool:
+        return self.family == XML_FAMILY

@@ -1,0 +1,140 @@
+"""The tile stage: one scene's EXR set (every spp + the reference) -> its group in the patch store.
+
+Crops are chosen once per scene and shared by every spp level, so each noisy row is paired with
+the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
+candidates are drawn uniformly and kept with probability proportional to their relative noise
+plus reference edge strength, with a floor so flat regions still appear. Splits are assigned per
+scene by a stable hash, never per patch, and never move when the corpus grows.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from admc.model import transforms as tf
+from admc.stores import exr, patches
+
+SPLITS = patches.SPLITS
+NOISE_FLOOR = 0.1  # share of the mean score every candidate gets, so flat regions are not excluded
+
+
+def split_of(scene_id: str, fractions: tuple[float, float, float], seed: int) -> str:
+    """Stable per-scene split: a hash of (seed, scene id) mapped to [0, 1) against the fractions."""
+    digest = hashlib.sha256(f"{seed}/{scene_id}".encode()).digest()
+    u = int.from_bytes(digest[:8], "little") / 2**64
+    edges = np.cumsum(fractions) / sum(fractions)
+    return SPLITS[int(np.searchsorted(edges, u, side="right"))]
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def importance_map(noisy: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> np.ndarray:
+    """Per-pixel score: relative variance of the noisiest input + relative gradient of the reference."""
+    ref = reference["diffuse"] + reference.get("specular", 0.0)
+    var = noisy["diffuse_var"] + noisy.get("specular_var", 0.0)
+    lum = _luminance(ref)
+    rel_var = _luminance(var) / (lum**2 + 1e-2)
+    gy, gx = np.gradient(lum)
+    rel_grad = np.hypot(gx, gy) / (lum + 1e-2)
+    score = np.nan_to_num(rel_var, nan=0.0, posinf=0.0) + np.nan_to_num(rel_grad, nan=0.0, posinf=0.0)
+    return np.clip(score, 0.0, 1e6)
+
+
+def choose_crops(score: np.ndarray, n: int, patch: int, candidates_per_crop: int,
+                 rng: np.random.Generator) -> np.ndarray:
+    """(n, 2) crop origins (y, x) drawn without replacement from candidates weighted by mean score."""
+    h, w = score.shape
+    if h < patch or w < patch:
+        raise ValueError(f"image {w}x{h} is smaller than the {patch}x{patch} patch size")
+    integral = np.pad(score.astype(np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    k = max(n * candidates_per_crop, n)
+    ys = rng.integers(0, h - patch + 1, size=k)
+    xs = rng.integers(0, w - patch + 1, size=k)
+    sums = (integral[ys + patch, xs + patch] - integral[ys, xs + patch]
+            - integral[ys + patch, xs] + integral[ys, xs])
+    weights = sums / patch**2
+    weights = weights + NOISE_FLOOR * (weights.mean() + 1e-12)
+    picked = rng.choice(k, size=n, replace=False, p=weights / weights.sum())
+    return np.stack([ys[picked], xs[picked]], axis=1).astype(np.int32)
+
+
+def _clean(layers: dict[str, np.ndarray], counts: dict, prefix: str) -> dict[str, np.ndarray]:
+    """Sanitize every buffer the store needs; count what was replaced under prefix/<layer>."""
+    out = {}
+    for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage"):
+        if name in layers:
+            out[name], c = tf.sanitize(layers[name], name)
+            if any(c.values()):
+                counts[f"{prefix}/{name}"] = c
+    for name in ("diffuse_var", "specular_var"):
+        if name in layers:
+            out[name] = np.nan_to_num(layers[name], nan=0.0, posinf=tf.RADIANCE_MAX, neginf=0.0)
+    return out
+
+
+def _crops(image: np.ndarray, origins: np.ndarray, patch: int) -> np.ndarray:
+    """(H, W, C) -> (n, C, patch, patch)."""
+    return np.stack([image[y:y + patch, x:x + patch].transpose(2, 0, 1) for y, x in origins])
+
+
+def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
+    x16, n = tf.to_fp16(x)
+    if n:
+        clamped[name] = clamped.get(name, 0) + n
+    return x16
+
+
+def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
+               scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
+               seed: int) -> dict:
+    """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}."""
+    from admc.pipeline.render import EXR_NAME  # the render stage's file name inside its task folder
+
+    def read(name: str) -> dict[str, np.ndarray]:
+        return exr.read_exr(inputs[name] / EXR_NAME)
+
+    sanitized: dict = {}
+    reference = _clean(read("reference"), sanitized, "reference")
+    spp_inputs = sorted((k for k in inputs if k != "reference"), key=lambda k: int(k[3:]))
+    noisy = {k: _clean(read(k), sanitized, k) for k in spp_inputs}
+    has_specular = "specular" in reference
+    h, w = reference["diffuse"].shape[:2]
+
+    rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
+    origins = choose_crops(importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size,
+                           candidates_per_crop, rng)
+    clamped: dict = {}
+    arrays = {"origin": origins,
+              "ref_diffuse": _fp16("ref_diffuse", _crops(tf.diffuse_forward(reference["diffuse"], reference["albedo"]),
+                                                         origins, patch_size), clamped)}
+    if has_specular:
+        arrays["ref_specular"] = _fp16("ref_specular", _crops(tf.specular_forward(reference["specular"]),
+                                                              origins, patch_size), clamped)
+    rows: dict[str, list] = {"noisy_diffuse": [], "noisy_specular": [], "features": [], "spp": [], "crop": []}
+    for key in spp_inputs:
+        layers = noisy[key]
+        rows["noisy_diffuse"].append(_crops(tf.diffuse_forward(layers["diffuse"], layers["albedo"]),
+                                            origins, patch_size))
+        if has_specular:
+            rows["noisy_specular"].append(_crops(tf.specular_forward(layers["specular"]), origins, patch_size))
+        feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
+        rows["features"].append(_crops(feats, origins, patch_size))
+        rows["spp"].append(np.full(len(origins), int(key[3:]), dtype=np.int32))
+        rows["crop"].append(np.arange(len(origins), dtype=np.int32))
+    for name, parts in rows.items():
+        if parts:
+            joined = np.concatenate(parts)
+            arrays[name] = joined if name in ("spp", "crop") else _fp16(name, joined, clamped)
+
+    stats = {name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
+             for name, a in arrays.items() if a.ndim == 4}
+    patches.write_scene(store, split, scene_id, arrays, {
+        "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
+        "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
+    })
+    return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
+            "has_specular": has_specular, "sanitized": sanitized, "fp16_clamped": clamped}

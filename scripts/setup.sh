@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Set up a fresh machine for admc: system LLVM 19 for Mitsuba's llvm_ad_rgb, a venv in .venv,
+# torch first (the CPU build on local disk; anything else pulls GBs of CUDA wheels), then the
+# project in editable mode. Idempotent: a second run only checks and returns in seconds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${ADMC_VENV:-.venv}
+LLVM=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
+
+if [ ! -e "$LLVM" ]; then
+  echo "setup: installing libllvm19 (the system LLVM 15 crashes Mitsuba's llvm_ad_rgb)"
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  python3 -m venv "$VENV"
+fi
+PY="$VENV/bin/python"
+stamp="$VENV/.admc-setup-stamp"
+want=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && "$PY" -c "import admc, torch, mitsuba" 2>/dev/null; then
+  echo "setup: up to date ($VENV)"
+  exit 0
+fi
+"$PY" -m pip install -q --upgrade pip
+"$PY" -m pip install -q "torch==2.13.0"
+"$PY" -m pip install -q -e ".[dev]"
+echo "$want" > "$stamp"
+echo "setup: done ($VENV, $("$PY" -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"

@@ -1,0 +1,49 @@
+"""The command line as a person meets it: --help, wrong arguments, missing files."""
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ADMC = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "admc-pipe")
+
+
+def run(*args, cwd=None):
+    return subprocess.run([ADMC, *args], capture_output=True, text=True, cwd=cwd, timeout=120)
+
+
+def test_help_lists_every_command_and_says_what_is_not_built():
+    out = run("--help")
+    assert out.returncode == 0
+    for command in ("render", "dataset", "tile", "train", "eval", "denoise", "cache", "config"):
+        assert command in out.stdout
+    assert "not built yet" in out.stdout
+
+
+def test_not_built_command_says_so_and_fails():
+    out = run("eval")
+    assert out.returncode == 2
+    assert "not built yet" in out.stderr
+
+
+def test_wrong_option_is_rejected():
+    out = run("render", "--no-such-option")
+    assert out.returncode == 2
+    assert "no-such-option" in out.stderr
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["config", "--config", "missing.toml"], "missing.toml"),
+    (["config", "--set", "render.sppp=4"], "render.sppp"),
+    (["render", "--set", "render.variant=no_such_variant"], "no_such_variant"),
+])
+def test_bad_input_is_one_clear_line(tmp_path, args, needle):
+    out = run(*args, cwd=tmp_path)
+    assert out.returncode == 2
+    assert needle in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_config_prints_resolved_values(tmp_path):
+    out = run("config", "--set", "render.spp=[2, 8]", cwd=tmp_path)
+    assert out.returncode == 0
+    assert "spp = [2, 8]" in out.stdout

@@ -1,0 +1,186 @@
+"""Render + tile end to end: the patch store holds exactly what the EXRs say, incrementally."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from admc.model import transforms as tf
+from admc.pipeline import tile
+from admc.pipeline.config import load_config
+from admc.pipeline.stages import build_dataset
+from admc.stores import exr, patches
+
+ADMC = str(Path(sys.executable).parent / "admc-pipe")
+
+
+def tiny(workdir, n_scenes):
+    return load_config(None, [
+        f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2, 4]",
+        "render.reference_spp=16", "corpus.families=['room', 'tabletop']", f"corpus.n_scenes={n_scenes}",
+        "tile.patch_size=16", "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"])
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    from admc.pipeline.variants import use_variant
+    use_variant("auto")
+    workdir = tmp_path_factory.mktemp("dataset")
+    return workdir, build_dataset(tiny(workdir, 3), progress=False)
+
+
+def test_store_rows_equal_the_transformed_exr_crops(built):
+    workdir, result = built
+    assert result.executed == 3 * 3 + 3
+    for summary in result.tiles:
+        reader_rows = 0
+        group = f"{summary['split']}/{summary['scene_id']}"
+        scene = patches.PatchReader(result.store, summary["split"])
+        rows = [i for i in range(len(scene)) if scene.locate(i)[0] == summary["scene_id"]]
+        for i in rows:
+            row = scene[i]
+            y, x = _origin(result.store, group, scene.locate(i)[1])
+            layers = exr.read_exr(result.renders_dir / summary["scene_id"] / f"spp{row['spp']:04d}.exr")
+            crop = (slice(y, y + 16), slice(x, x + 16))
+            want = tf.diffuse_forward(layers["diffuse"], layers["albedo"])[crop].transpose(2, 0, 1)
+            np.testing.assert_array_equal(row["noisy"], want.astype(np.float16).astype(np.float32))
+            feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
+            np.testing.assert_array_equal(row["features"], feats[crop].transpose(2, 0, 1).astype(np.float16))
+            reader_rows += 1
+        assert reader_rows == summary["rows"] == 3 * 2
+
+
+def _origin(store, group, row):
+    import zarr
+    g = zarr.open_group(str(store / group), mode="r")
+    return g["origin"][int(g["crop"][row])]
+
+
+def test_store_attributes_invert_the_reference(built):
+    workdir, result = built
+    import zarr
+    root = zarr.open_group(str(result.store), mode="r")
+    assert root.attrs["transform"] == tf.transform_spec()
+    assert root.attrs["feature_channels"] == list(tf.FEATURE_CHANNELS)
+    summary = result.tiles[0]
+    group = root[f"{summary['split']}/{summary['scene_id']}"]
+    reference = exr.read_exr(result.renders_dir / summary["scene_id"] / "reference.exr")
+    y, x = group["origin"][0]
+    stored = group["ref_diffuse"][0].astype(np.float32).transpose(1, 2, 0)
+    back = tf.diffuse_inverse(stored, reference["albedo"][y:y + 16, x:x + 16])
+    want = reference["diffuse"][y:y + 16, x:x + 16]
+    np.testing.assert_allclose(back, want, rtol=2e-3, atol=1e-4)
+
+
+def test_rerun_does_nothing_and_a_new_scene_tiles_only_itself(built):
+    workdir, result = built
+    again = build_dataset(tiny(workdir, 3), progress=False)
+    assert again.executed == 0
+    before = {p: p.stat().st_mtime_ns for p in result.store.rglob("*") if p.is_file()}
+    grown = build_dataset(tiny(workdir, 4), progress=False)
+    assert grown.executed == 3 + 1, "one new scene: its 3 renders and its tile task"
+    after = {p: p.stat().st_mtime_ns for p in result.store.rglob("*") if p.is_file()}
+    assert all(after[p] == t for p, t in before.items()), "existing scenes must not be rewritten"
+    assert sum(len(patches.list_scenes(result.store, s)) for s in patches.SPLITS) == 4
+
+
+def test_deleted_store_is_rebuilt_from_cached_renders(tmp_path, variant):
+    first = build_dataset(tiny(tmp_path, 1), progress=False)
+    import shutil
+    shutil.rmtree(first.store)
+    again = build_dataset(tiny(tmp_path, 1), progress=False)
+    assert again.executed == 1, "only the tile task reruns; renders stay cached"
+    assert sum(len(patches.list_scenes(again.store, s)) for s in patches.SPLITS) == 1
+
+
+def _fake_render(folder: Path, layers: dict, precision="float") -> Path:
+    folder.mkdir(parents=True)
+    exr.write_exr(folder / "render.exr", layers, precision=precision)
+    return folder
+
+
+def _layers(rng, size, specular=True, poison=False):
+    h = w = size
+    layers = {"diffuse": rng.random((h, w, 3), dtype=np.float32), "albedo": rng.random((h, w, 3), dtype=np.float32),
+              "normal": rng.uniform(-1, 1, (h, w, 3)).astype(np.float32),
+              "depth": rng.uniform(1, 5, (h, w, 1)).astype(np.float32), "coverage": np.ones((h, w, 1), np.float32),
+              "diffuse_var": rng.random((h, w, 3), dtype=np.float32) * 0.01}
+    if specular:
+        layers["specular"] = rng.random((h, w, 3), dtype=np.float32)
+        layers["specular_var"] = rng.random((h, w, 3), dtype=np.float32) * 0.01
+    if poison:
+        layers["diffuse"][0, 0] = np.nan
+        layers["diffuse"][1, 1] = np.inf
+        layers["diffuse"][2, 2] = 1e9
+        layers["normal"][3, 3] = np.nan
+        layers["depth"][4, 4] = np.inf
+        layers["coverage"][5:, :4] = 0.0  # environment-only pixels
+        if specular:
+            layers["specular"][6, 6] = -np.inf
+    return layers
+
+
+def _store(tmp_path):
+    store = tmp_path / "p.zarr"
+    patches.create_store(store, {"transform": tf.transform_spec(), "patch_size": 16})
+    return store
+
+
+@pytest.mark.parametrize("specular", [True, False])
+def test_nan_inf_and_huge_pixels_are_handled_and_reported(tmp_path, specular):
+    rng = np.random.default_rng(1)
+    inputs = {"reference": _fake_render(tmp_path / "ref", _layers(rng, 32, specular, poison=True)),
+              "spp0004": _fake_render(tmp_path / "n4", _layers(rng, 32, specular, poison=True))}
+    store = _store(tmp_path)
+    out = tile.tile_scene(tmp_path, inputs, store=str(store), split="train", scene_id="poisoned",
+                          scene_hash="ab" * 32, patch_size=16, crops_per_scene=4, candidates_per_crop=4, seed=0)
+    # counts are per value: each poisoned pixel has 3 channels
+    assert out["sanitized"]["reference/diffuse"]["nan"] == 3
+    assert out["sanitized"]["reference/diffuse"]["posinf"] == 3
+    assert out["sanitized"]["reference/diffuse"]["above_max"] == 3  # 1e9 clamped to the FP16-safe maximum
+    assert out["sanitized"]["spp0004/normal"]["nan"] == 3
+    assert out["sanitized"]["spp0004/depth"]["posinf"] == 1
+    if specular:
+        assert out["sanitized"]["spp0004/specular"]["neginf"] == 3
+    import zarr
+    group = zarr.open_group(str(store / "train" / "poisoned"), mode="r")
+    for name in group.array_keys():
+        assert np.isfinite(group[name][...].astype(np.float32)).all(), name
+    assert ("noisy_specular" in group) == specular
+    reader = patches.PatchReader(store, "train", branch="specular")
+    assert len(reader) == (4 if specular else 0), "a scene without specular gives no specular patches"
+
+
+def test_split_is_by_scene_and_stable():
+    ids = [f"room-{i:04d}" for i in range(400)]
+    splits = [tile.split_of(s, (0.8, 0.1, 0.1), 0) for s in ids]
+    assert splits == [tile.split_of(s, (0.8, 0.1, 0.1), 0) for s in ids]
+    share = {s: splits.count(s) / len(ids) for s in patches.SPLITS}
+    assert 0.72 < share["train"] < 0.88 and 0.05 < share["val"] < 0.15 and 0.05 < share["test"] < 0.15
+
+
+def test_crops_favour_noisy_regions():
+    score = np.zeros((64, 64))
+    score[:, 32:] = 1.0  # the right half is noisy
+    origins = tile.choose_crops(score, 200 // 10, 16, 8, np.random.default_rng(0))
+    right = (origins[:, 1] >= 24).mean()
+    assert right > 0.7
+
+
+def test_image_smaller_than_patch_is_a_clear_error():
+    with pytest.raises(ValueError, match="smaller than the 128x128"):
+        tile.choose_crops(np.ones((64, 64)), 1, 128, 4, np.random.default_rng(0))
+
+
+def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
+    workdir, result = built
+    args = ["--set", f"run.workdir='{workdir}'", "--set", "tile.patch_size=16", "--set", "tile.crops_per_scene=3",
+            "--set", "tile.split=[0.6, 0.2, 0.2]", "--set", "render.spp=[2, 4]", "--set", "render.reference_spp=16"]
+    out = subprocess.run([ADMC, "dataset", "--summary", *args], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "train" in out.stdout and "sanitized values" in out.stdout
+    sheet = result.store.parent / "contact_sheet.png"
+    from PIL import Image
+    image = Image.open(sheet)
+    assert image.size[0] == 4 * 16 + 3 * 4 and image.size[1] >= 16

@@ -1,0 +1,142 @@
+"""Generator L1 + adversarial loss, WGAN-GP critic loss and the float32 gradient penalty."""
+import pytest
+import torch
+from torch import nn
+
+from admc.model.critic import Critic, CriticConfig
+from admc.model.generator import Generator, GeneratorConfig
+from admc.model.losses import critic_loss, generator_loss, gradient_penalty
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny nets gain nothing from intra-op threads, and on a shared 2-core machine OpenMP's
+    spinning threads made these tests ~15x slower; run them on one thread and restore after."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+class LinearCritic(nn.Module):
+    """D(x) = <w, x> + b: its input gradient is w everywhere, so the GP is (||w|| - 1)^2 exactly.
+    Built on nn.Linear so autocast really runs it in bf16 when the GP fails to turn autocast off."""
+
+    def __init__(self, w: torch.Tensor) -> None:
+        super().__init__()
+        self.linear = nn.Linear(w.numel(), 1)
+        with torch.no_grad():
+            self.linear.weight.copy_(w.reshape(1, -1))
+
+    def forward(self, x):
+        return self.linear(x.flatten(1))
+
+
+def random_direction(shape, norm, seed=0):
+    w = torch.randn(shape, generator=torch.Generator().manual_seed(seed))
+    return w * (norm / w.norm())
+
+
+@pytest.mark.parametrize("w_norm", [0.3, 1.0, 2.5])
+def test_gradient_penalty_of_a_linear_critic_is_norm_minus_one_squared(w_norm):
+    critic = LinearCritic(random_direction((3, 8, 8), w_norm))
+    real, fake = torch.rand(4, 3, 8, 8), torch.rand(4, 3, 8, 8)
+    gp = gradient_penalty(critic, real, fake)
+    assert gp.item() == pytest.approx((w_norm - 1) ** 2, abs=1e-6)
+
+
+def test_gradient_penalty_is_float32_and_unchanged_under_bf16_autocast():
+    critic = LinearCritic(random_direction((3, 8, 8), 2.5))
+    real, fake = torch.rand(4, 3, 8, 8), torch.rand(4, 3, 8, 8)
+    reference = gradient_penalty(critic, real, fake)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        gp = gradient_penalty(critic, real.bfloat16(), fake.bfloat16())
+        assert critic(real).dtype == torch.bfloat16  # autocast is really on around the call
+    assert gp.dtype == torch.float32
+    assert gp.item() == pytest.approx(reference.item(), rel=1e-6)
+
+
+def test_gradient_penalty_of_a_real_critic_matches_float32_under_autocast():
+    torch.manual_seed(0)
+    critic = Critic(CriticConfig(base_channels=4, patch_size=32))
+    real, fake = torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32)
+    torch.manual_seed(1)
+    reference = gradient_penalty(critic, real, fake)
+    torch.manual_seed(1)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        gp = gradient_penalty(critic, real, fake)
+    assert gp.dtype == torch.float32
+    torch.testing.assert_close(gp, reference, rtol=1e-5, atol=1e-7)
+
+
+def test_gradient_penalty_trains_the_critic():
+    critic = LinearCritic(random_direction((3, 4, 4), 2.0))
+    gp = gradient_penalty(critic, torch.rand(2, 3, 4, 4), torch.rand(2, 3, 4, 4))
+    gp.backward()
+    # d/dw (||w|| - 1)^2 = 2 (||w|| - 1) w / ||w|| = w here (||w|| = 2)
+    torch.testing.assert_close(critic.linear.weight.grad, critic.linear.weight.detach(), rtol=1e-5, atol=1e-6)
+
+
+def test_generator_loss_weights_l1_and_adversarial_terms():
+    fake, real = torch.full((2, 3, 4, 4), 0.5), torch.full((2, 3, 4, 4), 0.25)
+    critic_fake = torch.tensor([[2.0], [4.0]])
+    total, parts = generator_loss(fake, real, critic_fake)
+    assert parts["l1"].item() == pytest.approx(0.25)
+    assert parts["adversarial"].item() == pytest.approx(-3.0)
+    assert total.item() == pytest.approx(0.25 - 5e-3 * 3.0)
+    l1_only, parts = generator_loss(fake, real, None, l1_weight=2.0, adversarial=False)
+    assert l1_only.item() == pytest.approx(0.5) and set(parts) == {"l1"}
+    with pytest.raises(ValueError, match="critic_fake is required"):
+        generator_loss(fake, real, None)
+
+
+def test_critic_loss_is_half_the_negative_wasserstein_estimate_plus_weighted_gp():
+    critic = LinearCritic(random_direction((3, 4, 4), 3.0))
+    real, fake = torch.rand(4, 3, 4, 4), torch.rand(4, 3, 4, 4)
+    loss, parts = critic_loss(critic, real, fake, gp_weight=10.0)
+    w_estimate = critic(real).mean() - critic(fake).mean()
+    assert parts["wasserstein"].item() == pytest.approx(w_estimate.item(), rel=1e-5)
+    assert parts["gp"].item() == pytest.approx(4.0, abs=1e-5)
+    assert loss.item() == pytest.approx(-w_estimate.item() / 2 + 40.0, rel=1e-5)
+
+
+def test_tiny_generator_overfits_fixed_patches_with_l1():
+    torch.manual_seed(0)
+    g = Generator(GeneratorConfig(channels=16, blocks=2, cond_channels=8, encoder_channels=16))
+    clean = torch.rand(4, 3, 16, 16)
+    noisy, features = clean + 0.1 * torch.randn_like(clean), torch.rand(4, 7, 16, 16)
+    opt = torch.optim.Adam(g.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(300):
+        loss, _ = generator_loss(g(noisy, features), clean, None, adversarial=False)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0] / 5, f"L1 went from {losses[0]:.4f} to {losses[-1]:.4f} (needs 5x)"
+
+
+@pytest.mark.parametrize("norm", ["layer", "batch"])
+def test_one_wgan_gp_step_on_tiny_nets(norm):
+    torch.manual_seed(0)
+    g = Generator(GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16))
+    d = Critic(CriticConfig(base_channels=8, norm=norm, patch_size=32))
+    opt_g, opt_d = torch.optim.Adam(g.parameters(), 1e-4), torch.optim.Adam(d.parameters(), 1e-4)
+    noisy, features, clean = torch.rand(2, 3, 32, 32), torch.rand(2, 7, 32, 32), torch.rand(2, 3, 32, 32)
+    d_before = [p.detach().clone() for p in d.parameters()]
+    fake = g(noisy, features)
+    d_loss, d_parts = critic_loss(d, clean, fake)
+    opt_d.zero_grad()
+    d_loss.backward()
+    opt_d.step()
+    assert all(torch.isfinite(v) for v in d_parts.values()) and d_parts["gp"] > 0
+    # Every critic weight moves except the last bias: it cancels in D(fake) - D(real) and the GP.
+    unchanged = [n for (n, p), b in zip(d.named_parameters(), d_before) if torch.equal(p, b)]
+    assert unchanged == ["classifier.2.bias"]
+    assert all(p.grad is None for p in g.parameters())  # the critic step leaves G alone
+    g_loss, g_parts = generator_loss(fake, clean, d(fake))
+    opt_g.zero_grad()
+    g_loss.backward()
+    opt_g.step()
+    assert torch.isfinite(g_loss) and set(g_parts) == {"l1", "adversarial"}
+    assert all(p.grad is not None for p in g.parameters())

@@ -1,0 +1,161 @@
+"""The denoiser (EncoderNet + CFM generator, every ablation mode) and the VGG-128 critic, on CPU."""
+import pytest
+import torch
+
+from admc.model.critic import Critic, CriticConfig
+from admc.model.encoder import EncoderNet
+from admc.model.generator import MODES, CFMLayer, Generator, GeneratorConfig
+from admc.model.losses import generator_loss
+
+TINY = dict(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny nets gain nothing from intra-op threads, and on a shared 2-core machine OpenMP's
+    spinning threads made these tests ~15x slower; run them on one thread and restore after."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def count(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def test_cfm_is_the_identity_when_gamma_is_one_and_beta_zero():
+    torch.manual_seed(0)
+    cfm = CFMLayer(channels=8, cond_channels=4)
+    x, cond = torch.randn(2, 8, 5, 7), torch.randn(2, 4, 5, 7)
+    assert not torch.equal(cfm(x, cond), x)
+    with torch.no_grad():
+        for net in (cfm.scale, cfm.shift):
+            net[-1].weight.zero_()
+            net[-1].bias.zero_()
+    assert torch.equal(cfm(x, cond), x)
+
+
+def test_cfm_output_is_x_times_one_plus_scale_plus_shift():
+    torch.manual_seed(0)
+    cfm = CFMLayer(channels=8, cond_channels=4)
+    x, cond = torch.randn(2, 8, 5, 7), torch.randn(2, 4, 5, 7)
+    expected = x * (cfm.scale(cond) + 1) + cfm.shift(cond)
+    torch.testing.assert_close(cfm(x, cond), expected)
+
+
+def test_encoder_keeps_resolution_and_gives_the_condition_channels():
+    out = EncoderNet(hidden_channels=16, out_channels=8)(torch.rand(2, 7, 9, 13))
+    assert out.shape == (2, 8, 9, 13)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_every_mode_trains_one_step(mode):
+    torch.manual_seed(0)
+    g = Generator(GeneratorConfig(**TINY, mode=mode))
+    noisy, features, clean = torch.rand(2, 3, 32, 32), torch.rand(2, 7, 32, 32), torch.rand(2, 3, 32, 32)
+    before = [p.detach().clone() for p in g.parameters()]
+    out = g(noisy, features)
+    assert out.shape == noisy.shape and torch.isfinite(out).all() and (out >= 0).all()
+    loss, _ = generator_loss(out, clean, None, adversarial=False)
+    loss.backward()
+    torch.optim.Adam(g.parameters(), lr=1e-3).step()
+    changed = [not torch.equal(a, b) for a, b in zip(before, g.parameters())]
+    assert sum(changed) == len(changed), f"{len(changed) - sum(changed)} parameter tensors did not move"
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_modes_have_the_cfm_parts_they_claim(mode):
+    g = Generator(GeneratorConfig(**TINY, mode=mode))
+    cfms = [m for m in g.modules() if isinstance(m, CFMLayer)]
+    if mode in ("none", "concat"):
+        assert cfms == [] and g.encoder is None
+    else:
+        assert len(cfms) == 2 * TINY["blocks"] + 1 and g.encoder is not None
+        assert all((c.scale is not None) == (mode in ("cfm", "scale")) for c in cfms)
+        assert all((c.shift is not None) == (mode in ("cfm", "shift")) for c in cfms)
+    assert g.head.in_channels == (10 if mode == "concat" else 3)
+
+
+@pytest.mark.parametrize("mode", ["cfm", "concat", "none"])
+def test_output_shape_matches_odd_input_sizes(mode):
+    g = Generator(GeneratorConfig(**TINY, mode=mode)).eval()
+    with torch.no_grad():
+        assert g(torch.rand(1, 3, 33, 47), torch.rand(1, 7, 33, 47)).shape == (1, 3, 33, 47)
+
+
+def test_channels_last_gives_the_same_output():
+    torch.manual_seed(0)
+    g = Generator(GeneratorConfig(**TINY)).eval()
+    noisy, features = torch.rand(2, 3, 17, 23), torch.rand(2, 7, 17, 23)
+    with torch.no_grad():
+        expected = g(noisy, features)
+        g_cl = g.to(memory_format=torch.channels_last)
+        out = g_cl(noisy.to(memory_format=torch.channels_last), features.to(memory_format=torch.channels_last))
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_none_mode_needs_no_features_and_others_reject_bad_ones():
+    assert Generator(GeneratorConfig(**TINY, mode="none"))(torch.rand(1, 3, 8, 8)).shape == (1, 3, 8, 8)
+    g = Generator(GeneratorConfig(**TINY))
+    with pytest.raises(ValueError, match="features are required"):
+        g(torch.rand(1, 3, 8, 8))
+    with pytest.raises(ValueError, match="features must be"):
+        g(torch.rand(1, 3, 8, 8), torch.rand(1, 6, 8, 8))
+    with pytest.raises(ValueError, match="noisy must be"):
+        g(torch.rand(1, 4, 8, 8), torch.rand(1, 7, 8, 8))
+    with pytest.raises(ValueError, match="mode"):
+        GeneratorConfig(mode="film")
+
+
+def test_paper_generator_has_the_authors_parameter_count():
+    g = Generator(GeneratorConfig())
+    assert count(g) == 1_530_019  # 1.53 M in the implementation notes
+    assert count(g.encoder) == 61_856  # ~62 k
+    assert count(g.body_cfm) == 6_336  # ~6.3 k per CFM layer
+
+
+def test_generator_init_is_kaiming_fan_in_scaled_by_a_tenth():
+    torch.manual_seed(0)
+    conv = Generator(GeneratorConfig()).blocks[0].conv1  # 64 -> 64, 3x3: fan-in 576
+    expected_std = 0.1 * (2.0 / 576) ** 0.5
+    assert conv.weight.std().item() == pytest.approx(expected_std, rel=0.02)
+    assert torch.count_nonzero(conv.bias) == 0
+
+
+def test_parameter_groups_split_head_and_tail_from_the_body():
+    g = Generator(GeneratorConfig(**TINY))
+    groups = g.parameter_groups()
+    head_tail = sum(p.numel() for p in groups["head_tail"])
+    assert head_tail == count(g.head) + count(g.tail)
+    assert head_tail + sum(p.numel() for p in groups["body"]) == count(g)
+
+
+@pytest.mark.parametrize("norm,expected", [("none", 14_496_521), ("layer", 14_502_281), ("batch", 14_502_281)])
+def test_paper_critic_parameter_count(norm, expected):
+    n = count(Critic(CriticConfig(norm=norm)))
+    assert n == expected and abs(n - 14.5e6) / 14.5e6 < 0.1
+
+
+def test_paper_critic_scores_128_patches():
+    c = Critic(CriticConfig())
+    assert c.classifier[0].in_features == 8192
+    with torch.no_grad():
+        assert c(torch.rand(2, 3, 128, 128)).shape == (2, 1)
+
+
+@pytest.mark.parametrize("norm", ["none", "layer", "batch"])
+def test_tiny_critic_on_32_patches(norm):
+    c = Critic(CriticConfig(base_channels=8, norm=norm, patch_size=32))
+    assert c.classifier[0].in_features == 64  # 8 * 8 channels at 1x1
+    out = c(torch.rand(3, 3, 32, 32))
+    assert out.shape == (3, 1) and torch.isfinite(out).all()
+
+
+def test_critic_rejects_wrong_patch_sizes():
+    with pytest.raises(ValueError, match="patch_size"):
+        CriticConfig(patch_size=48)
+    with pytest.raises(ValueError, match="norm"):
+        CriticConfig(norm="instance")
+    with pytest.raises(ValueError, match=r"\(N, 3, 32, 32\)"):
+        Critic(CriticConfig(base_channels=8, patch_size=32))(torch.rand(1, 3, 64, 64))
