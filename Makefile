@@ -22,8 +22,8 @@ dataset: setup              ## render + tile the corpus into the Zarr patch stor
 test: setup                 ## the test suite (real renders, tiny sizes)
 	$(PY) -m pytest -q --durations=15 $(ARGS)
 
-bench: setup                ## print measured speed figures
-	$(PY) benchmarks/bench_integrator.py $(ARGS)
+bench: setup                ## print measured speed and size figures (each script: --help)
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:                      ## remove the default workdir (cache, renders)
 	rm -rf .admc

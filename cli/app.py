@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import functools
+import os
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from admc.pipeline import config as config_mod
 
@@ -25,16 +28,19 @@ def _user_errors(fn):
     """Known, user-caused failures print one clear line and exit 2 instead of a traceback."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        from admc.pipeline.scenes import SceneError
-        from admc.pipeline.variants import VariantError
+        from admc.model.trainer import TrainingDiverged
+        from admc.pipeline.eval_stage import EvalStageError
         from admc.pipeline.stages import StageError
-        from admc.stores.exr import ExrError
-        from admc.stores.patches import PatchStoreError
+        from admc.pipeline.variants import VariantError
+
         try:
             return fn(*args, **kwargs)
-        except (config_mod.ConfigError, SceneError, VariantError, ExrError, PatchStoreError, StageError,
-                FileNotFoundError) as exc:
-            err.print(f"[bold red]error:[/] {exc}")
+        except (ValueError, VariantError, StageError, EvalStageError, TrainingDiverged, FileNotFoundError) as exc:
+            # ValueError covers ConfigError, SceneError, ExrError, PatchStoreError, EvalError, CheckpointError
+            # and the trainer's refusals; ADMC_DEBUG=1 shows the traceback instead.
+            if os.environ.get("ADMC_DEBUG"):
+                raise
+            err.print(Text.assemble(("error: ", "bold red"), str(exc)))
             raise typer.Exit(2)
     return wrapper
 
@@ -129,6 +135,52 @@ def tile(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt 
     _print_dataset(result)
 
 
+class Stage(str, Enum):
+    pretrain = "pretrain"
+    finetune = "finetune"
+
+
+@app.command()
+@_user_errors
+def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
+          stage: Annotated[Stage, typer.Option(help="pretrain on the corpus, or finetune from pretrained weights.")] = Stage.pretrain,
+          init: Annotated[Optional[Path], typer.Option(help="finetune from this checkpoint or weights file "
+                                                            "(default: the shipped weights matching the model config).")] = None,
+          resume: Annotated[bool, typer.Option("--resume", help="continue the run in the output folder exactly.")] = False) -> None:
+    """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed)."""
+    from admc.pipeline.train_stage import run_training
+
+    cfg = _load(config, set_, scheduler)
+    result = run_training(cfg, stage.value, init_from=init, resume=resume)
+    for note in result.notes:
+        console.print(note, markup=False)
+    table = Table(title=f"{stage.value}: step {result.step}")
+    for column in ("branch", "last losses", "validation"):
+        table.add_column(column)
+    for branch in result.branches:
+        losses = ", ".join(f"{k} {v:.4g}" for k, v in result.last_losses.get(branch, {}).items())
+        val = ", ".join(f"{k} {v:.4g}" for k, v in result.validation.get(branch, {}).items())
+        table.add_row(branch, losses, val)
+    console.print(table)
+    if result.skipped_branches:
+        console.print(f"skipped branches (no patches): {', '.join(result.skipped_branches)}")
+    console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")
+
+
+@app.command("eval")
+@_user_errors
+def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
+    """Table 1 on the test split's full images (noisy input vs OIDN), error vs time, and an HTML page."""
+    from admc.pipeline.eval_stage import run_eval
+
+    cfg = _load(config, set_, scheduler)
+    outcome = run_eval(cfg)
+    console.print(outcome.result.files["table1_md"].read_text(), markup=False)
+    console.print(f"test scenes: {', '.join(outcome.scene_ids)}")
+    console.print(f"HTML report: {outcome.report}")
+    console.print(f"tables and plots: {outcome.report.parent}")
+
+
 @app.command()
 @_user_errors
 def cache(config: ConfigOpt = None, set_: SetOpt = None,
@@ -174,10 +226,6 @@ def _not_built(name: str, issue: int, what: str):
     return command
 
 
-app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
-    _not_built("train", 4, "train the CFM generator and WGAN-GP critic (--stage pretrain|finetune)"))
-app.command("eval", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
-    _not_built("eval", 5, "Table 1 against the noisy input and OIDN, error vs time, HTML report"))
 app.command("denoise", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
     _not_built("denoise", 5, "denoise your own EXR renders"))
 

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from admc.model.settings import ModelSettings, TrainSettings
+
 
 class ConfigError(ValueError):
     pass
@@ -76,6 +78,22 @@ class TileConfig:
 
 
 @dataclass(frozen=True)
+class EvalConfig:
+    split: str
+    out_dir: str
+    oidn_quality: str
+    repeats: int
+    warmup: int
+
+    def check(self) -> None:
+        _require(self.split in ("train", "val", "test"), "eval.split", f"must be train, val or test, got {self.split!r}")
+        _require(self.oidn_quality in ("fast", "balanced", "high"), "eval.oidn_quality",
+                 f"must be fast, balanced or high, got {self.oidn_quality!r}")
+        _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
+        _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     workdir: str
     scheduler: str
@@ -91,6 +109,9 @@ class Config:
     corpus: CorpusConfig
     render: RenderConfig
     tile: TileConfig
+    model: ModelSettings
+    train: TrainSettings
+    eval: EvalConfig
     run: RunConfig
 
     def to_dict(self) -> dict:
@@ -176,6 +197,11 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
         hints = typing.get_type_hints(cls)
         section = cls(**{name: _coerce(values[field.name][name], hints[name], f"{field.name}.{name}")
                          for name in hints})
-        section.check()
+        try:
+            section.check()
+        except ConfigError:
+            raise
+        except ValueError as exc:  # model/ settings say "<field>: <problem>"
+            raise ConfigError(f"config key '{field.name}.{exc}".replace(":", "':", 1)) from None
         sections[field.name] = section
     return Config(**sections)

@@ -67,6 +67,11 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
     loaded = scenes.load_scene(spec)
     needs = scenes.analyse(loaded)
     start = time.perf_counter()
+    # A 1-spp warm-up compiles the JIT kernels, so render_seconds measures sampling alone: the
+    # error-against-time curves compare spp levels, and compile time would dominate low spp.
+    integrator.render_buffers(loaded, 1, seed ^ 0x2545F491, split=needs.has_specular, max_depth=max_depth)
+    compile_seconds = time.perf_counter() - start
+    start = time.perf_counter()
     layers = integrator.render_buffers(loaded, spp, seed, split=needs.has_specular, max_depth=max_depth,
                                        max_spp_per_pass=max_spp_per_pass)
     seconds = time.perf_counter() - start
@@ -81,6 +86,7 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
         "scene_id": spec.scene_id, "family": spec.family, "scene_hash": scenes.scene_hash(spec),
         "spp": spp, "reference": reference, "seed": seed, "variant": active,
         "resolution": list(spec.resolution), "render_seconds": round(seconds, 4),
+        "warmup_seconds": round(compile_seconds, 4),
         "samples_per_second": spp * spec.resolution[0] * spec.resolution[1] / max(seconds, 1e-9),
         "has_specular": needs.has_specular, "bsdf_types": list(needs.bsdf_types),
         "layers": sorted(layers), "nonfinite": nonfinite, "fp16_clamped": clamped,

@@ -33,9 +33,11 @@ class StageResult:
     store: Path | None
     executed: int
     cached: int
+    tasks: list[Task]              # every task of the run, upstream included (for their manifests)
 
 
-def _run(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
+def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
+    """Run tasks (and what they depend on) through the stage cache; return published paths and how many were cached."""
     store = open_cache(cfg)
     cached = sum(store.is_done(t) for t in runner.collect(tasks).values())
     published = runner.run(tasks, store, scheduler=cfg.run.scheduler, workers=cfg.run.workers or None,
@@ -53,9 +55,10 @@ def render_corpus(cfg: Config, progress: bool = True) -> StageResult:
     specs = render.corpus(cfg)
     renders = render.render_tasks(cfg, specs)
     tasks = [t for levels in renders.values() for t in levels.values()]
-    published, cached = _run(cfg, tasks, progress)
+    published, cached = run_cached(cfg, tasks, progress)
     renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
-    return StageResult(specs, _sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached)
+    return StageResult(specs, _sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached,
+                       tasks)
 
 
 def store_attributes(cfg: Config) -> dict:
@@ -97,12 +100,12 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
         if cache.is_done(task) and not patches.has_scene(store_path, split, spec.scene_id):
             cache.forget(task)  # the store lost this scene (deleted or moved): tile it again
         tiles.append(task)
-    published, cached = _run(cfg, tiles, progress)
+    published, cached = run_cached(cfg, tiles, progress)
     renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
     summaries = [cache.summary(t) for t in tiles]
-    total = len(runner.collect(tiles))
+    everything = list(runner.collect(tiles).values())
     return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,
-                       total - cached, cached)
+                       len(everything) - cached, cached, everything)
 
 
 def existing_dataset(cfg: Config) -> StageResult:
@@ -110,4 +113,4 @@ def existing_dataset(cfg: Config) -> StageResult:
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     if not (store_path / "zarr.json").is_file():
         raise StageError(f"no patch store at {store_path}: run `admc-pipe dataset` first")
-    return StageResult([], [], [], Path(cfg.run.workdir) / "renders", store_path, 0, 0)
+    return StageResult([], [], [], Path(cfg.run.workdir) / "renders", store_path, 0, 0, [])

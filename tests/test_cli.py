@@ -20,7 +20,7 @@ def test_help_lists_every_command_and_says_what_is_not_built():
 
 
 def test_not_built_command_says_so_and_fails():
-    out = run("eval")
+    out = run("denoise")
     assert out.returncode == 2
     assert "not built yet" in out.stderr
 

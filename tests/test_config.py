@@ -59,3 +59,22 @@ def test_missing_and_malformed_files(tmp_path):
     bad.write_text("[render\n")
     with pytest.raises(ConfigError, match="bad.toml"):
         load_config(bad)
+
+
+def test_model_and_train_sections_match_the_settings_factories():
+    from admc.model.settings import paper_settings, small_settings
+
+    assert (load_config().model, load_config().train) == small_settings()
+    paper = load_config(REPO / "configs" / "paper.toml")
+    assert (paper.model, paper.train) == paper_settings()
+
+
+@pytest.mark.parametrize("override, key", [
+    ("train.batch_size=0", "train.batch_size"),
+    ("model.mode='cat'", "model.mode"),
+    ("train.lr_milestones=[5, 3]", "train.lr_milestones"),
+    ("train.adversarial=1", "train.adversarial"),
+])
+def test_model_and_train_errors_name_the_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(None, [override])

@@ -1,0 +1,186 @@
+"""One branch's (diffuse or specular) networks, optimisers and training step.
+
+The authors' optimiser: Adam(0.9, 0.999, eps 1e-8) everywhere; the conditioned body and the
+encoder learn at body_lr_factor x the branch's lr, head and tail at the lr and only from
+head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code); MultiStepLR on
+each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
+so a bad batch never reaches the weights; the step counts as bad.
+"""
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor, nn
+
+from .critic import Critic
+from .generator import Generator
+from .losses import critic_loss, generator_loss
+from .settings import ModelSettings, TrainSettings
+
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+
+
+def autocast_for(device: torch.device) -> contextlib.AbstractContextManager:
+    """bf16 autocast on CUDA (no loss scaling needed, unlike fp16); full fp32 on the CPU."""
+    if device.type == "cuda":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def _grads_finite(params: list[nn.Parameter]) -> bool:
+    norms = [torch.linalg.vector_norm(p.grad.detach().float()) for p in params if p.grad is not None]
+    return bool(torch.isfinite(torch.stack(norms)).all()) if norms else True
+
+
+@contextlib.contextmanager
+def _frozen(module: nn.Module) -> Iterator[None]:
+    """No parameter gradients for `module` inside (the critic during a generator update)."""
+    flags = [p.requires_grad for p in module.parameters()]
+    for p in module.parameters():
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p, flag in zip(module.parameters(), flags):
+            p.requires_grad_(flag)
+
+
+class BranchTrainer:
+    """Generator + critic of one branch with their optimisers, schedulers and bad-step counters."""
+
+    def __init__(self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int,
+                 device: torch.device):
+        self.branch, self.settings, self.device = branch, settings, device
+        self.channels_last = device.type == "cuda"
+        memory = torch.channels_last if self.channels_last else torch.contiguous_format
+        self.generator = Generator(model.generator_config()).to(device, memory_format=memory)
+        self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
+        lr = settings.lr_g(branch)
+        groups = self.generator.parameter_groups()
+        self.optimizers = {
+            "g_body": torch.optim.Adam(groups["body"], lr=lr * settings.body_lr_factor, betas=ADAM_BETAS, eps=ADAM_EPS),
+            "g_head_tail": torch.optim.Adam(groups["head_tail"], lr=lr, betas=ADAM_BETAS, eps=ADAM_EPS),
+            "critic": torch.optim.Adam(self.critic.parameters(), lr=settings.lr_d, betas=ADAM_BETAS, eps=ADAM_EPS),
+        }
+        self.schedulers = {name: torch.optim.lr_scheduler.MultiStepLR(opt, list(settings.lr_milestones),
+                                                                      settings.lr_gamma)
+                           for name, opt in self.optimizers.items()}
+        self.batches = 0          # batches consumed from the data stream (its resume position)
+        self.bad_total = 0
+        self.bad_consecutive = 0
+
+    def batches_per_step(self, step: int) -> int:
+        return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
+
+    def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        memory = torch.channels_last if self.channels_last else torch.contiguous_format
+        return {k: batch[k].to(self.device, non_blocking=True, memory_format=memory)
+                for k in ("noisy", "features", "reference")}
+
+    def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:
+        with torch.no_grad(), autocast_for(self.device):
+            fake = self.generator(batch["noisy"], batch["features"])
+        opt = self.optimizers["critic"]
+        opt.zero_grad(set_to_none=True)
+        with autocast_for(self.device):
+            loss, parts = critic_loss(self.critic, batch["reference"], fake, self.settings.gp_weight)
+        parts["critic_loss"] = loss.detach()
+        if not torch.isfinite(loss):
+            return False, parts
+        loss.backward()
+        if not _grads_finite(list(self.critic.parameters())):
+            opt.zero_grad(set_to_none=True)
+            return False, parts
+        opt.step()
+        return True, parts
+
+    def _generator_update(self, step: int, batch: dict[str, Tensor], adversarial: bool
+                          ) -> tuple[bool, dict[str, Tensor]]:
+        for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
+            opt.zero_grad(set_to_none=True)
+        s = self.settings
+        with _frozen(self.critic), autocast_for(self.device):
+            fake = self.generator(batch["noisy"], batch["features"])
+            critic_fake = self.critic(fake) if adversarial else None
+            loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
+                                         adversarial)
+        parts["generator_loss"] = loss.detach()
+        if not torch.isfinite(loss):
+            return False, parts
+        loss.backward()
+        if not _grads_finite(list(self.generator.parameters())):
+            return False, parts
+        self.optimizers["g_body"].step()
+        if step >= s.head_tail_start_step:
+            self.optimizers["g_head_tail"].step()
+        return True, parts
+
+    def step(self, step: int, batches: list[dict[str, Tensor]]) -> tuple[bool, dict[str, float]]:
+        """One global step on `batches_per_step(step)` batches: critic update(s) then generator update
+        as the phase asks. Returns (ok, losses); on a bad step no weights, optimiser states or
+        schedulers changed."""
+        phase = self.settings.phase(step)
+        if len(batches) != self.batches_per_step(step):
+            raise ValueError(f"{self.branch} step {step} ({phase}): needs {self.batches_per_step(step)} "
+                             f"batches, got {len(batches)}")
+        self.batches += len(batches)
+        batches = [self._to_device(b) for b in batches]
+        self.generator.train()
+        self.critic.train()
+        # A non-finite input is refused before any forward pass: even a skipped update would
+        # otherwise push it into BatchNorm running statistics (critic_norm = "batch").
+        ok = all(bool(torch.isfinite(t).all()) for b in batches for t in b.values())
+        parts: dict[str, Tensor] = {}
+        if ok and phase in ("critic", "adversarial"):
+            for batch in batches:
+                good, p = self._critic_update(batch)
+                ok, parts = ok and good, {**parts, **p}
+        if ok and phase in ("l1", "adversarial"):
+            good, p = self._generator_update(step, batches[-1], adversarial=phase == "adversarial")
+            ok, parts = ok and good, {**parts, **p}
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        if ok:
+            with warnings.catch_warnings():
+                # Optimisers idle in this phase (critic during L1, head/tail early) still follow the
+                # global step schedule; torch warns about a scheduler step without an optimiser step.
+                warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step\\(\\)` before")
+                for scheduler in self.schedulers.values():
+                    scheduler.step()
+            self.bad_consecutive = 0
+        else:
+            self.bad_total += 1
+            self.bad_consecutive += 1
+        return ok, {k: float(v) for k, v in parts.items()}
+
+    def learning_rates(self) -> dict[str, float]:
+        return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator.state_dict(), "critic": self.critic.state_dict(),
+                "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+                "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
+                "batches": self.batches, "bad_total": self.bad_total, "bad_consecutive": self.bad_consecutive}
+
+    def load_state_dict(self, state: dict, source: str) -> None:
+        self.load_networks(state["generator"], state["critic"], source)
+        for k, opt in self.optimizers.items():
+            opt.load_state_dict(state["optimizers"][k])
+        for k, scheduler in self.schedulers.items():
+            scheduler.load_state_dict(state["schedulers"][k])
+        self.batches, self.bad_total = state["batches"], state["bad_total"]
+        self.bad_consecutive = state["bad_consecutive"]
+
+    def load_networks(self, generator: dict[str, Tensor], critic: dict[str, Tensor], source: str) -> None:
+        """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs."""
+        for name, net, sd in (("generator", self.generator, generator), ("critic", self.critic, critic)):
+            try:
+                net.load_state_dict(sd)
+            except RuntimeError as exc:
+                first = str(exc).strip().splitlines()
+                raise ValueError(f"{source}: {self.branch} {name} weights do not fit the configured "
+                                 f"architecture: {' '.join(first[:3])}") from None

@@ -1,0 +1,154 @@
+"""Training data: a reproducible, resumable stream of augmented patch batches from a patch store.
+
+The sample order and each sample's augmentation are a pure function of (seed, branch, position in
+the stream), drawn in the main process: the data a run sees does not depend on the number of
+workers or their scheduling, and a resumed run continues the stream by starting at the number of
+batches it had consumed. Augmentation is the 8 symmetries of the square (flips and transpose); the
+view-space normal channels are transformed with the image, so a flipped patch is a patch that could
+have been rendered.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+import zarr
+from torch.utils.data import DataLoader, Dataset
+from zarr.storage import LocalStore
+
+from admc.stores.patches import SPLITS, PatchReader, list_scenes
+
+# Augmentation codes 0..7 are 3 bits, applied in this order: transpose, flip rows, flip columns.
+TRANSPOSE, FLIP_ROWS, FLIP_COLS = 1, 2, 4
+N_AUGMENTATIONS = 8
+NORMAL_X, NORMAL_Y = 0, 1  # feature channels of the view-space normal (x right, y up), stored as (n + 1) / 2
+
+
+def augment(image: np.ndarray, code: int, normals: bool = False) -> np.ndarray:
+    """Apply symmetry `code` to a (C, H, W) array; with `normals`, channels 0 and 1 are the encoded
+    view-space normal x and y, which change sign (v -> 1 - v) as the image geometry does.
+
+    Image rows run downward while view-space y runs up, so: flipping columns negates x, flipping
+    rows negates y, and transposing (a mirror on the anti-diagonal in view space) maps
+    (x, y) -> (-y, -x).
+    """
+    if not 0 <= code < N_AUGMENTATIONS:
+        raise ValueError(f"augment: code must be in 0..{N_AUGMENTATIONS - 1}, got {code}")
+    out = image
+    if normals:
+        out = out.copy()
+    if code & TRANSPOSE:
+        out = out.transpose(0, 2, 1)
+        if normals:
+            x, y = out[NORMAL_X].copy(), out[NORMAL_Y].copy()
+            out[NORMAL_X], out[NORMAL_Y] = 1.0 - y, 1.0 - x
+    if code & FLIP_ROWS:
+        out = out[:, ::-1, :]
+        if normals:
+            out[NORMAL_Y] = 1.0 - out[NORMAL_Y]
+    if code & FLIP_COLS:
+        out = out[:, :, ::-1]
+        if normals:
+            out[NORMAL_X] = 1.0 - out[NORMAL_X]
+    return np.ascontiguousarray(out)
+
+
+class PatchDataset(Dataset):
+    """Items are (row, augmentation code) pairs -> {"noisy", "features", "reference"} float32 tensors.
+
+    The PatchReader pickles without open zarr handles, so each DataLoader worker opens its own.
+    """
+
+    def __init__(self, reader: PatchReader):
+        self.reader = reader
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
+        row, code = key
+        item = self.reader[row]
+        return {
+            "noisy": torch.from_numpy(augment(item["noisy"], code)),
+            "features": torch.from_numpy(augment(item["features"], code, normals=True)),
+            "reference": torch.from_numpy(augment(item["reference"], code)),
+        }
+
+
+class BatchStream:
+    """Endless batches of (row, augmentation) pairs: epochs of seeded permutations, batches taken
+    across epoch boundaries. Batch b is the same for every run with the same (seed, n_rows, batch_size).
+    """
+
+    def __init__(self, n_rows: int, batch_size: int, seed: int, start_batch: int = 0, augment: bool = True):
+        if n_rows < 1:
+            raise ValueError("BatchStream: no rows to sample")
+        self.n_rows, self.batch_size, self.seed = n_rows, batch_size, seed
+        self.start_batch, self.augment = start_batch, augment
+
+    def _epoch(self, epoch: int) -> tuple[np.ndarray, np.ndarray]:
+        rng = np.random.default_rng([self.seed, epoch])
+        order = rng.permutation(self.n_rows)
+        codes = rng.integers(0, N_AUGMENTATIONS, self.n_rows) if self.augment else np.zeros(self.n_rows, int)
+        return order, codes
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        position = self.start_batch * self.batch_size
+        epoch, offset = divmod(position, self.n_rows)
+        order, codes = self._epoch(epoch)
+        while True:
+            batch = []
+            while len(batch) < self.batch_size:
+                if offset == self.n_rows:
+                    epoch, offset = epoch + 1, 0
+                    order, codes = self._epoch(epoch)
+                batch.append((int(order[offset]), int(codes[offset])))
+                offset += 1
+            yield batch
+
+
+def branch_seed(seed: int, branch: str) -> int:
+    """Distinct, stable stream seeds per branch."""
+    return seed * 2 + (1 if branch == "specular" else 0)
+
+
+def train_loader(reader: PatchReader, batch_size: int, seed: int, start_batch: int = 0,
+                 num_workers: int = 0, pin_memory: bool = False) -> DataLoader:
+    """An endless DataLoader over the reader, starting at batch `start_batch` of the seeded stream.
+
+    The loader gets its own torch.Generator, so creating its iterator does not consume the global
+    torch RNG (which the gradient penalty uses): a resumed run stays bit-identical.
+    """
+    stream = BatchStream(len(reader), batch_size, seed, start_batch)
+    return DataLoader(PatchDataset(reader), batch_sampler=stream, num_workers=num_workers,
+                      pin_memory=pin_memory, persistent_workers=False,
+                      generator=torch.Generator().manual_seed(seed),
+                      prefetch_factor=2 if num_workers > 0 else None)
+
+
+def load_rows(reader: PatchReader, n: int) -> dict[str, torch.Tensor]:
+    """The first min(n, len) rows, unaugmented, stacked: a fixed validation set."""
+    count = min(n, len(reader))
+    if count == 0:
+        raise ValueError(f"{reader.path}: split {reader.split!r} has no {reader.branch} patches")
+    items = [reader[i] for i in range(count)]
+    return {key: torch.from_numpy(np.stack([item[key] for item in items]))
+            for key in ("noisy", "features", "reference")}
+
+
+def store_fingerprint(path: str | os.PathLike) -> str:
+    """sha256 over the store's root attributes and every split's scene ids and scene hashes.
+
+    Cheap (metadata only): it changes when scenes are added, removed or re-rendered, not when
+    patch bytes are edited in place.
+    """
+    root = zarr.open_group(store=LocalStore(Path(path), read_only=True), mode="r")
+    scenes = {split: {scene: root[f"{split}/{scene}"].attrs.get("scene_hash") for scene in list_scenes(path, split)}
+              for split in SPLITS}
+    text = json.dumps({"attrs": dict(root.attrs), "scenes": scenes}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()

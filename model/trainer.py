@@ -1,0 +1,318 @@
+"""`pretrain` and `finetune`: train both branches' CFM generators and WGAN-GP critics on a patch store.
+
+One global step advances every branch once (see TrainSettings.phase for the L1 warm-up, critic
+pretraining and adversarial phases). The checkpoint holds everything the next step depends on
+(weights, optimisers, schedulers, RNG states, data-stream positions), so `resume=True` continues
+bit-identically on the CPU. The store's transform spec must equal the one the weights were trained
+on (checkpoint, init weights, or this code's for a fresh pretrain); a resumed run also needs the very
+same store (fingerprint).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import random
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from admc.stores.checkpoints import export_weights, load_checkpoint, load_weights, save_checkpoint
+from admc.stores.patches import PatchReader, PatchStoreError
+
+from .branch import BranchTrainer
+from .data import branch_seed, load_rows, store_fingerprint, train_loader
+from .metrics_log import MetricsLog
+from .settings import STAGES, ModelSettings, TrainSettings
+from .transforms import transform_spec
+from .validation import validate
+
+CHECKPOINT_NAME = "checkpoint.pt"
+WEIGHTS_NAME = "weights-fp16.pt"
+# Settings a resumed run may change without changing what it computes.
+RESUMABLE_CHANGES = ("steps", "val_every", "val_patches", "checkpoint_every", "log_every", "num_workers",
+                     "threads", "device", "max_bad_steps")
+log = logging.getLogger("admc.train")
+
+
+class TrainingDiverged(RuntimeError):
+    """Too many consecutive steps had non-finite losses or gradients."""
+
+
+@dataclass
+class TrainResult:
+    out_dir: Path
+    checkpoint: Path
+    weights: Path
+    step: int
+    branches: list[str]
+    skipped_branches: list[str]
+    bad_steps: dict[str, int]
+    last_losses: dict[str, dict[str, float]]
+    validation: dict[str, dict[str, float]]
+    notes: list[str] = field(default_factory=list)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device: 'cuda' requested but torch sees no CUDA device")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
+
+
+def _rng_state() -> dict:
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    state = {"python": random.getstate(), "torch": torch.get_rng_state(),
+             "numpy": (kind, keys.tolist(), pos, has_gauss, cached)}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    torch.set_rng_state(state["torch"])
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((kind, np.array(keys, dtype=np.uint32), pos, has_gauss, cached))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, model: ModelSettings, stage: str,
+                     fingerprint: str) -> None:
+    if checkpoint["stage"] != stage:
+        raise ValueError(f"{path}: is a {checkpoint['stage']!r} checkpoint, cannot resume it as {stage!r}")
+    if checkpoint["model"] != dataclasses.asdict(model):
+        diff = [k for k, v in dataclasses.asdict(model).items() if checkpoint["model"].get(k) != v]
+        raise ValueError(f"{path}: model settings differ from the checkpoint's in {diff}")
+    saved, now = checkpoint["settings"], dataclasses.asdict(settings)
+    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    if diff:
+        raise ValueError(f"{path}: train settings {diff} differ from the checkpoint's; an exact resume allows "
+                         f"changing only {list(RESUMABLE_CHANGES)}")
+    if checkpoint["store"]["fingerprint"] != fingerprint:
+        raise ValueError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
+                         "resume needs the same data: start a 'finetune' from the checkpoint instead")
+
+
+def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict, str]:
+    """(branch -> {"generator", "critic"}, transform spec, description) from a checkpoint or fp16 weights."""
+    if init_from is None:
+        raise ValueError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
+    init_from = Path(init_from)
+    try:
+        checkpoint = load_checkpoint(init_from)
+        nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in checkpoint["branches"].items()}
+        saved_model, transform = checkpoint["model"], checkpoint["transform"]
+    except ValueError as first:
+        try:
+            weights = load_weights(init_from)
+        except ValueError:
+            raise first from None
+        nets, saved_model = weights["branches"], weights["metadata"]["model"]
+        transform = weights["metadata"]["transform"]
+    if saved_model != dataclasses.asdict(model):
+        diff = [k for k, v in dataclasses.asdict(model).items() if saved_model.get(k) != v]
+        raise ValueError(f"{init_from}: its model settings differ from the configured ones in {diff}")
+    return nets, transform, str(init_from)
+
+
+def _open_reader(store: Path, split: str, transform: dict, branch: str, source: str) -> PatchReader:
+    try:
+        return PatchReader(store, split, expect_transform=transform, branch=branch)
+    except PatchStoreError as exc:
+        raise PatchStoreError(f"refused for {source}: {exc}") from None
+
+
+class _Averages:
+    """Running means of the logged losses since the last log line."""
+
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = defaultdict(float)
+        self.counts: dict[str, int] = defaultdict(int)
+
+    def add(self, prefix: str, values: dict[str, float]) -> None:
+        for k, v in values.items():
+            self.sums[f"{prefix}/{k}"] += v
+            self.counts[f"{prefix}/{k}"] += 1
+
+    def pop(self) -> dict[str, float]:
+        out = {k: self.sums[k] / self.counts[k] for k in self.sums}
+        self.sums.clear()
+        self.counts.clear()
+        return out
+
+
+def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, model: ModelSettings,
+          stage: str = "pretrain", init_from: str | Path | None = None, resume: bool = False,
+          progress: bool = True) -> TrainResult:
+    """Train (or resume training) both branches; writes checkpoint.pt, weights-fp16.pt, metrics.csv and
+    TensorBoard events to `out_dir`. Raises TrainingDiverged after max_bad_steps consecutive
+    non-finite steps (the last checkpoint on disk is then the last one written before the streak)."""
+    settings.check()
+    model.check()
+    if stage not in STAGES:
+        raise ValueError(f"stage: {stage!r} is not one of {STAGES}")
+    store, out_dir = Path(store_path), Path(out_dir)
+    checkpoint_path, weights_path = out_dir / CHECKPOINT_NAME, out_dir / WEIGHTS_NAME
+    notes: list[str] = []
+
+    def say(message: str) -> None:
+        notes.append(message)
+        log.info(message)
+        if progress:
+            tqdm.write(message)
+
+    device = resolve_device(settings.device)
+    if device.type == "cpu" and settings.threads:
+        torch.set_num_threads(settings.threads)
+    fingerprint = store_fingerprint(store) if (store / "zarr.json").is_file() else None
+    checkpoint, init_nets = None, None
+    if resume:
+        checkpoint = load_checkpoint(checkpoint_path)
+        transform, source = checkpoint["transform"], f"checkpoint {checkpoint_path}"
+    else:
+        if checkpoint_path.exists():
+            raise ValueError(f"{checkpoint_path} exists: pass resume=True to continue that run, or use another out_dir")
+        if stage == "finetune":
+            init_nets, transform, source = _load_init(init_from, model)
+            source = f"init weights {source}"
+        elif init_from is not None:
+            raise ValueError("init_from: only stage 'finetune' starts from existing weights")
+        else:
+            transform, source = transform_spec(), "this code's transform spec"
+
+    readers: dict[str, PatchReader] = {}
+    skipped: list[str] = []
+    for branch in settings.branches:
+        reader = _open_reader(store, "train", transform, branch, source)
+        if len(reader) == 0 and branch == "specular":
+            skipped.append(branch)
+            say(f"{store}: no specular patches in the train split; the specular branch is not trained")
+            continue
+        if len(reader) == 0:
+            raise PatchStoreError(f"{store}: the train split has no {branch} patches")
+        readers[branch] = reader
+    if not readers:
+        raise PatchStoreError(f"{store}: nothing to train for branches {list(settings.branches)}")
+    if resume:
+        _check_resumable(checkpoint, checkpoint_path, settings, model, stage, fingerprint)
+    patch_size = int(next(iter(readers.values())).attrs["patch_size"])
+
+    val: dict[str, dict] = {}
+    if settings.val_every:
+        for branch in readers:
+            val_reader = _open_reader(store, "val", transform, branch, source)
+            if len(val_reader) == 0 and branch == "specular":
+                say(f"{store}: no specular patches in the val split; specular is not validated")
+                continue
+            if len(val_reader) == 0:
+                raise PatchStoreError(f"{store}: the val split has no {branch} patches (needed as val_every > 0)")
+            val[branch] = load_rows(val_reader, settings.val_patches)
+
+    _seed_everything(settings.seed)
+    trainers = {b: BranchTrainer(b, model, settings, patch_size, device) for b in readers}
+    start = 0
+    if checkpoint is not None:
+        for b, trainer in trainers.items():
+            if b not in checkpoint["branches"]:
+                raise ValueError(f"{checkpoint_path}: has no {b} branch but the store and settings train it")
+            trainer.load_state_dict(checkpoint["branches"][b], str(checkpoint_path))
+        _set_rng_state(checkpoint["rng"])
+        start = int(checkpoint["step"])
+        say(f"resuming {stage} from {checkpoint_path} at step {start}")
+    elif init_nets is not None:
+        for b, trainer in trainers.items():
+            if b not in init_nets:
+                raise ValueError(f"{init_from}: has no {b} branch to fine-tune")
+            trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(init_from))
+
+    def state(step: int) -> dict:
+        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings),
+                "model": dataclasses.asdict(model), "transform": transform,
+                "store": {"path": str(store), "fingerprint": fingerprint, "patch_size": patch_size},
+                "init_from": str(init_from) if init_from is not None else None,
+                "branches": {b: t.state_dict() for b, t in trainers.items()}, "rng": _rng_state()}
+
+    pin = device.type == "cuda"
+    streams = {b: iter(train_loader(readers[b], settings.batch_size, branch_seed(settings.seed, b),
+                                    trainers[b].batches, settings.num_workers, pin)) for b in trainers}
+    metrics = MetricsLog(out_dir, resume_step=start if resume else None)
+    averages, last_losses, validation = _Averages(), {}, {}
+    last_saved = start if resume else None
+    bar = tqdm(total=settings.steps, initial=start, disable=not progress, desc=stage, dynamic_ncols=True)
+    window_start, window_patches = time.perf_counter(), 0
+    try:
+        for step in range(start, settings.steps):
+            for b, trainer in trainers.items():
+                batches = [next(streams[b]) for _ in range(trainer.batches_per_step(step))]
+                ok, losses = trainer.step(step, batches)
+                window_patches += len(batches) * settings.batch_size
+                if ok:
+                    averages.add(b, losses)
+                    last_losses[b] = losses
+                    continue
+                say(f"step {step}: {b} skipped, non-finite batch, loss or gradient "
+                    f"({trainer.bad_consecutive} in a row, {trainer.bad_total} in all)")
+                if trainer.bad_consecutive >= settings.max_bad_steps:
+                    kept = f"step {last_saved}" if last_saved is not None else "none written"
+                    raise TrainingDiverged(
+                        f"{b}: {trainer.bad_consecutive} consecutive steps with non-finite batches, losses or "
+                        f"gradients (steps {step - trainer.bad_consecutive + 1}..{step}); stopped. Last good "
+                        f"checkpoint: {checkpoint_path} ({kept})")
+            done = step + 1
+            bar.update(1)
+            if done % settings.log_every == 0 or done == settings.steps:
+                elapsed = time.perf_counter() - window_start
+                values = averages.pop()
+                values["patches_per_s"] = window_patches / max(elapsed, 1e-9)
+                for b, trainer in trainers.items():
+                    values.update({f"{b}/{k}": v for k, v in trainer.learning_rates().items()})
+                    values[f"{b}/bad_steps"] = trainer.bad_total
+                values["phase"] = ("l1", "critic", "adversarial").index(settings.phase(step))
+                metrics.log(done, values)
+                bar.set_postfix(_postfix(values), refresh=False)
+                window_start, window_patches = time.perf_counter(), 0
+            if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
+                for b, rows in val.items():
+                    validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device)
+                    metrics.log(done, {f"{b}/val_{k}": v for k, v in validation[b].items()})
+            streak = any(t.bad_consecutive for t in trainers.values())
+            if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
+                save_checkpoint(checkpoint_path, state(done))
+                last_saved = done
+    finally:
+        bar.close()
+        metrics.close()
+        del streams
+
+    export_weights(weights_path, {b: {"generator": t.generator.state_dict(), "critic": t.critic.state_dict()}
+                                  for b, t in trainers.items()},
+                   {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
+                    "stage": stage, "step": max(start, settings.steps), "store_fingerprint": fingerprint})
+    return TrainResult(out_dir=out_dir, checkpoint=checkpoint_path, weights=weights_path,
+                       step=max(start, settings.steps), branches=list(trainers), skipped_branches=skipped,
+                       bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=last_losses,
+                       validation=validation, notes=notes)
+
+
+def _postfix(values: dict[str, float]) -> dict[str, str]:
+    short = {"l1": "l1", "wasserstein": "W", "gp": "gp"}
+    out = {}
+    for tag, value in values.items():
+        branch, _, key = tag.partition("/")
+        if key in short:
+            out[f"{branch[0]}.{short[key]}"] = f"{value:.3g}"
+    out["p/s"] = f"{values['patches_per_s']:.1f}"
+    return out

@@ -1,0 +1,161 @@
+"""The methods under test: one small interface, the noisy baseline, Intel Open Image Denoise, timing.
+
+The trained admc model joins the evaluation by implementing `Denoiser` (see model/): the evaluation
+only ever calls `denoise` and `synchronize`, and prints `name` and `device`.
+
+The OptiX denoiser is not offered: Mitsuba's `mi.OptixDenoiser` needs a CUDA variant and, for
+normals, the sensor's world-to-camera transform, which the render layers do not carry.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+OIDN_QUALITIES = ("high", "balanced", "fast")
+
+
+@runtime_checkable
+class Denoiser(Protocol):
+    name: str      # column name in the tables, e.g. "noisy", "oidn", "admc"
+    device: str    # what computes it, e.g. "cpu (AMD EPYC 9R14, 2 threads)", "cuda:0 (NVIDIA H100)"
+
+    def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
+        """(H, W, 3) float32 linear HDR radiance from the render layers of one noisy image."""
+        ...
+
+    def synchronize(self) -> None:
+        """Wait until all work queued on the device is done (a no-op on CPU), for honest timing."""
+        ...
+
+
+def cpu_description() -> str:
+    """'cpu (<model>, N threads)': which CPU produced a timing."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"cpu ({model}, {threads} threads)"
+
+
+def noisy_color(layers: dict[str, np.ndarray]) -> np.ndarray:
+    """The path tracer's image: diffuse + specular (scenes without specular materials have no specular)."""
+    if "diffuse" not in layers:
+        raise KeyError(f"render layers lack 'diffuse' (have {', '.join(sorted(layers))})")
+    color = np.asarray(layers["diffuse"], dtype=np.float32)
+    if "specular" in layers:
+        color = color + np.asarray(layers["specular"], dtype=np.float32)
+    return color
+
+
+class NoisyInput:
+    """The baseline row: the raw path-traced image, untouched."""
+    name = "noisy"
+
+    def __init__(self) -> None:
+        self.device = cpu_description()
+
+    def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
+        return noisy_color(layers)
+
+    def synchronize(self) -> None:
+        pass
+
+
+def _clean(image: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Contiguous float32 with NaN/inf set to 0 and values clipped to what OIDN documents as valid."""
+    image = np.asarray(image, dtype=np.float32)
+    image = np.where(np.isfinite(image), image, np.float32(0.0))
+    return np.ascontiguousarray(np.clip(image, low, high))
+
+
+class OidnDenoiser:
+    """Intel Open Image Denoise (pyoidn), HDR mode, with albedo and normal as auxiliary inputs.
+
+    The colour is sanitised first (NaN/inf -> 0, negatives -> 0: OIDN's HDR mode expects
+    non-negative radiance and spreads a NaN over its whole receptive field); albedo is clipped to
+    [0, 1] and normals to [-1, 1]. `last_sanitized` counts the colour values replaced in the latest call.
+    device="cpu" runs on NumPy arrays; "cuda" or "cuda:N" runs through CUDA torch tensors and
+    includes the host<->device copies in its time (untested here: this machine has no GPU).
+    pyoidn keeps one device and filter per process and reuses them across images.
+    """
+
+    def __init__(self, quality: str = "high", device: str = "cpu", name: str | None = None) -> None:
+        import pyoidn
+
+        if quality not in OIDN_QUALITIES:
+            raise ValueError(f"OIDN quality must be one of {', '.join(OIDN_QUALITIES)}, got {quality!r}")
+        self._pyoidn = pyoidn
+        self.quality = quality
+        self.name = name or ("oidn" if quality == "high" else f"oidn-{quality}")
+        self.last_sanitized = 0
+        self._torch_device = None
+        if device == "cpu":
+            if not pyoidn.Device.is_cpu_available():
+                raise RuntimeError("OIDN has no CPU device on this machine")
+            self.device = cpu_description()
+        elif device.startswith("cuda"):
+            import torch
+
+            if not torch.cuda.is_available():
+                raise RuntimeError(f"OIDN device {device!r} asked for, but torch sees no CUDA GPU")
+            self._torch_device = torch.device(device)
+            index = self._torch_device.index or 0
+            if not pyoidn.Device.is_cuda_available(index):
+                raise RuntimeError(f"this pyoidn build has no CUDA device backend for GPU {index}")
+            self.device = f"cuda:{index} ({torch.cuda.get_device_name(index)})"
+        else:
+            raise ValueError(f"OIDN device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
+
+    def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
+        raw = noisy_color(layers)
+        self.last_sanitized = int(np.count_nonzero(~np.isfinite(raw)))
+        inputs = [_clean(raw, 0.0, np.inf)]
+        for name, low in (("albedo", 0.0), ("normal", -1.0)):
+            if name not in layers:
+                raise KeyError(f"OIDN needs the {name!r} layer (have {', '.join(sorted(layers))})")
+            inputs.append(_clean(layers[name], low, 1.0))
+        if self._torch_device is None:
+            return self._pyoidn.denoise(*inputs, hdr=True, quality=self.quality)
+        import torch
+
+        tensors = [torch.from_numpy(a).to(self._torch_device) for a in inputs]
+        return self._pyoidn.denoise(*tensors, hdr=True, quality=self.quality).cpu().numpy()
+
+    def synchronize(self) -> None:
+        if self._torch_device is not None:
+            import torch
+
+            torch.cuda.synchronize(self._torch_device)
+
+
+def time_denoiser(denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 3,
+                  warmup: int = 1) -> tuple[np.ndarray, float]:
+    """(image, seconds): `warmup` untimed runs, then the median of `repeats` synchronised runs.
+
+    Warm-up keeps one-off costs (JIT, weight upload, allocator growth) out of the figure; each timed
+    run is bracketed by `synchronize` so queued GPU work is counted where it is spent.
+    """
+    if repeats < 1 or warmup < 0:
+        raise ValueError(f"repeats must be >= 1 and warmup >= 0, got repeats={repeats}, warmup={warmup}")
+    for _ in range(warmup):
+        denoiser.denoise(layers)
+    denoiser.synchronize()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        image = denoiser.denoise(layers)
+        denoiser.synchronize()
+        times.append(time.perf_counter() - start)
+    image = np.asarray(image, dtype=np.float32)
+    expected = np.shape(layers["diffuse"])
+    if image.shape != expected:
+        raise ValueError(f"denoiser {denoiser.name!r} returned shape {image.shape}, expected {expected}")
+    return image, statistics.median(times)

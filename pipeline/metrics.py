@@ -1,0 +1,135 @@
+"""Image quality metrics of the evaluation, each defined once (the report prints these docstrings).
+
+All metrics compare a result `x` with a reference `ref`, both (H, W, 3) linear HDR radiance.
+Non-finite values are replaced by 0 first (NONFINITE_RULE), so a denoiser that emits them is scored
+(badly) instead of crashing the evaluation or vanishing from it.
+"""
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+RELMSE_EPS = 1e-2
+GAMMA = 2.2
+PSNR_CAP_DB = 100.0
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = 5                 # 11x11 window: int(3.5 * 1.5 + 0.5), as scikit-image and Wang et al. 2004
+SSIM_K1, SSIM_K2 = 0.01, 0.03
+LDR_RANGE = 255.0               # PSNR and SSIM run on 8-bit values 0..255
+NONFINITE_RULE = ("NaN and +-inf values in an image or its reference are replaced by 0 before every metric "
+                  "and counted; the count is reported next to the scores.")
+
+
+def count_nonfinite(x: np.ndarray) -> int:
+    """Number of NaN or infinite values (not pixels: each channel counts)."""
+    return int(np.size(x) - np.count_nonzero(np.isfinite(x)))
+
+
+def finite(x: np.ndarray) -> np.ndarray:
+    """float64 copy of `x` with NaN and +-inf replaced by 0 (the rule every metric applies)."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def _check_pair(x: np.ndarray, ref: np.ndarray) -> None:
+    if np.shape(x) != np.shape(ref):
+        raise ValueError(f"image and reference differ in shape: {np.shape(x)} vs {np.shape(ref)}")
+    if np.ndim(x) != 3 or np.shape(x)[0] == 0 or np.shape(x)[1] == 0:
+        raise ValueError(f"images must be non-empty (H, W, C) arrays, got shape {np.shape(x)}")
+
+
+def relmse(x: np.ndarray, ref: np.ndarray) -> float:
+    """relMSE = mean over pixels and channels of (x - ref)^2 / (ref^2 + 0.01), on linear HDR values.
+
+    The paper's "RMSE" column. The authors' code multiplies by an extra 0.5 and works on log-domain
+    tensors; here there is no 0.5 factor and the images are linear radiance. Lower is better.
+    """
+    _check_pair(x, ref)
+    x, ref = finite(x), finite(ref)
+    return float(np.mean((x - ref) ** 2 / (ref ** 2 + RELMSE_EPS)))
+
+
+def to_ldr(x: np.ndarray) -> np.ndarray:
+    """8-bit display image: round(255 * clip(max(x, 0) ^ (1/2.2), 0, 1)) as uint8 (the authors' eval)."""
+    x = np.maximum(finite(x), 0.0) ** (1.0 / GAMMA)
+    return np.rint(np.clip(x, 0.0, 1.0) * LDR_RANGE).astype(np.uint8)
+
+
+def psnr(x: np.ndarray, ref: np.ndarray) -> float:
+    """PSNR = 10 log10(255^2 / MSE) in dB on the 8-bit images to_ldr(x), to_ldr(ref), MSE over all
+    pixels and channels; capped at 100 dB (identical images would give +inf). Higher is better.
+    """
+    _check_pair(x, ref)
+    mse = np.mean((to_ldr(x).astype(np.float64) - to_ldr(ref).astype(np.float64)) ** 2)
+    if mse == 0:
+        return PSNR_CAP_DB
+    return float(min(10.0 * np.log10(LDR_RANGE ** 2 / mse), PSNR_CAP_DB))
+
+
+def _gaussian_taps(radius: int) -> np.ndarray:
+    taps = np.exp(-0.5 * np.arange(-radius, radius + 1) ** 2 / SSIM_SIGMA ** 2)
+    return taps / taps.sum()
+
+
+def _ssim_channel(a: np.ndarray, b: np.ndarray) -> float:
+    radii = [min(SSIM_RADIUS, (n - 1) // 2) for n in a.shape]
+
+    def blur(img: np.ndarray) -> np.ndarray:
+        for axis, radius in enumerate(radii):
+            img = correlate1d(img, _gaussian_taps(radius), axis=axis, mode="reflect")
+        return img
+
+    mu_a, mu_b = blur(a), blur(b)
+    var_a = blur(a * a) - mu_a ** 2
+    var_b = blur(b * b) - mu_b ** 2
+    cov = blur(a * b) - mu_a * mu_b
+    c1, c2 = (SSIM_K1 * LDR_RANGE) ** 2, (SSIM_K2 * LDR_RANGE) ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    inner = s[radii[0]:s.shape[0] - radii[0], radii[1]:s.shape[1] - radii[1]]
+    return float(inner.mean(dtype=np.float64))
+
+
+def ssim(x: np.ndarray, ref: np.ndarray) -> float:
+    """SSIM (Wang et al. 2004) on the 8-bit images to_ldr(x), to_ldr(ref), averaged over channels.
+
+    Gaussian window 11x11 with sigma 1.5 (population statistics, K1 = 0.01, K2 = 0.03, data range
+    255, reflected borders), mean of the SSIM map without the window's radius strip at the borders:
+    identical to scikit-image's structural_similarity(gaussian_weights=True, sigma=1.5,
+    use_sample_covariance=False, data_range=255). An image narrower than 11 pixels along an axis gets
+    a window shrunk along that axis to the largest odd size that fits (same sigma, taps renormalised);
+    a 1-pixel axis thus compares single pixels. The table reports 1 - SSIM: lower is better.
+    """
+    _check_pair(x, ref)
+    a, b = to_ldr(x).astype(np.float64), to_ldr(ref).astype(np.float64)
+    return float(np.mean([_ssim_channel(a[..., c], b[..., c]) for c in range(a.shape[2])]))
+
+
+def one_minus_ssim(x: np.ndarray, ref: np.ndarray) -> float:
+    """1 - ssim(x, ref): the paper's SSIM column, oriented so that lower is better like relMSE."""
+    return 1.0 - ssim(x, ref)
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A column of Table 1: how to compute it from (x, ref), which direction is better, its definition."""
+    key: str
+    label: str
+    compute: Callable[[np.ndarray, np.ndarray], float]
+    lower_is_better: bool
+    definition: str
+
+
+METRICS: tuple[Metric, ...] = (
+    Metric("one_minus_ssim", "1-SSIM", one_minus_ssim, True, inspect.getdoc(ssim)),
+    Metric("psnr", "PSNR", psnr, False, inspect.getdoc(psnr)),
+    Metric("relmse", "relMSE", relmse, True, inspect.getdoc(relmse)),
+)
+
+
+def score(x: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """Every metric of METRICS for one image, keyed by Metric.key."""
+    return {m.key: float(m.compute(x, ref)) for m in METRICS}

@@ -1,0 +1,45 @@
+"""`admc-pipe train`: build (or reuse) the patch store, then pretrain or fine-tune both branches."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import admc
+from admc.model.settings import ModelSettings
+from admc.model.trainer import TrainResult, train
+from admc.pipeline.config import Config
+from admc.pipeline.stages import StageError, build_dataset
+
+WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
+
+
+def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
+    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
+    manifest = weights_dir / "manifest.json"
+    if not manifest.is_file():
+        return None
+    for entry in json.loads(manifest.read_text())["weights"]:
+        if entry["model"] == dataclasses.asdict(model):
+            return weights_dir / entry["file"]
+    return None
+
+
+def train_dir(cfg: Config, stage: str) -> Path:
+    return cfg.workdir_path("train") / stage
+
+
+def run_training(cfg: Config, stage: str, init_from: Path | None = None, resume: bool = False,
+                 progress: bool = True) -> TrainResult:
+    """Pretrain on the config's corpus, or fine-tune on it from `init_from` (default: the shipped weights)."""
+    if stage == "finetune" and init_from is None and not resume:
+        init_from = shipped_weights(cfg.model)
+        if init_from is None:
+            raise StageError("finetune needs pretrained weights: pass --init CHECKPOINT (e.g. "
+                             f"{train_dir(cfg, 'pretrain') / 'weights-fp16.pt'}); no shipped weights in weights/ "
+                             "match this [model] config")
+    if init_from is not None and not Path(init_from).is_file():
+        raise StageError(f"{init_from}: no such checkpoint or weights file")
+    dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
+    return train(dataset.store, train_dir(cfg, stage), cfg.train, cfg.model, stage=stage, init_from=init_from,
+                 resume=resume, progress=progress)

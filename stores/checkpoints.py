@@ -1,0 +1,87 @@
+"""Training checkpoints and shippable fp16 weights, written atomically and read with clear errors.
+
+A checkpoint is the whole training state (torch.save of a dict of tensors and plain values); it is
+published by rename, so a crash while saving leaves the previous checkpoint intact. Exported
+weights hold only the networks, cast to float16 (half the bytes), plus the metadata a user needs
+to check compatibility (architecture, transform spec, patch size). Both load with
+weights_only=True: no arbitrary code runs when opening a downloaded file.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from admc.stores.atomic import publishing
+
+CHECKPOINT_FORMAT = "admc-checkpoint"
+WEIGHTS_FORMAT = "admc-weights"
+FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint or weights file is missing, unreadable, or not what the caller needs."""
+
+
+def _save(path: Path, obj: dict) -> None:
+    with publishing(Path(path)) as tmp:
+        torch.save(obj, tmp)
+
+
+def _load(path: Path, fmt: str) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such file")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: not a readable torch file (truncated or corrupt?): {exc}") from None
+    if not isinstance(obj, dict) or obj.get("format") != fmt:
+        found = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
+        raise CheckpointError(f"{path}: not an {fmt} file (format={found!r})")
+    if obj.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: {fmt} format_version {obj.get('format_version')!r}, "
+                              f"this code reads {FORMAT_VERSION}")
+    return obj
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
+    """Write the training state atomically (temp file, fsync, rename)."""
+    _save(Path(path), {**state, "format": CHECKPOINT_FORMAT, "format_version": FORMAT_VERSION})
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The state saved by save_checkpoint, on the CPU; CheckpointError naming the file otherwise."""
+    return _load(Path(path), CHECKPOINT_FORMAT)
+
+
+def _half(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu", torch.float16) if v.is_floating_point() else v.detach().cpu()
+            for k, v in state_dict.items()}
+
+
+def export_weights(path: str | os.PathLike, branches: dict[str, dict[str, dict[str, torch.Tensor]]],
+                   metadata: dict[str, Any]) -> None:
+    """Write {branch: {"generator": state_dict, "critic": state_dict}} as float16, atomically.
+
+    `metadata` (model settings, transform spec, patch size, provenance) is stored alongside and
+    returned by load_weights; it must be plain values (dicts, lists, str, numbers, bools).
+    """
+    for name, nets in branches.items():
+        missing = {"generator", "critic"} - set(nets)
+        if missing:
+            raise ValueError(f"export_weights {path}: branch {name!r} lacks {sorted(missing)}")
+    _save(Path(path), {"format": WEIGHTS_FORMAT, "format_version": FORMAT_VERSION, "metadata": metadata,
+                       "branches": {name: {net: _half(sd) for net, sd in nets.items()}
+                                    for name, nets in branches.items()}})
+
+
+def load_weights(path: str | os.PathLike) -> dict[str, Any]:
+    """{"branches": {branch: {"generator", "critic"}}, "metadata": {...}}; tensors float16 on the CPU
+    (load_state_dict casts them to the model's dtype)."""
+    obj = _load(Path(path), WEIGHTS_FORMAT)
+    return {"branches": obj["branches"], "metadata": obj["metadata"]}

@@ -1,0 +1,154 @@
+"""Training data: symmetry augmentation (normals transformed with the image), the seeded resumable
+batch stream, and DataLoader batches from a real patch store with and without workers."""
+import numpy as np
+import pytest
+import torch
+
+from admc.model.data import (N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, store_fingerprint,
+                             train_loader)
+from admc.stores.patches import PatchReader
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory, variant):
+    from admc.pipeline.config import load_config
+    from admc.pipeline.stages import build_dataset
+    tmp = tmp_path_factory.mktemp("data_store")
+    cfg = load_config(None, [f"run.workdir='{tmp}'", "run.scheduler=sync", "render.resolution=[32, 32]",
+                             "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
+                             "tile.patch_size=16", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"])
+    return build_dataset(cfg, progress=False).store
+
+
+def sphere_features(height: int, width: int, cy: float, cx: float, radius: float) -> np.ndarray:
+    """(7, H, W) features of a sphere seen head-on: encoded view-space normal, depth ramp, albedo ramp.
+
+    Pixel (row r, column c) lies at view-space x = (c - cx) / radius, y = -(r - cy) / radius (rows run
+    down, y runs up); on the sphere n = (x, y, sqrt(1 - x^2 - y^2)); outside it n = (0, 0, 1).
+    """
+    r, c = np.mgrid[0:height, 0:width].astype(np.float64)
+    x, y = (c - cx) / radius, -(r - cy) / radius
+    inside = x ** 2 + y ** 2 < 1
+    z = np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, 1))
+    n = np.where(inside, np.stack([x, y, z]), np.array([0.0, 0.0, 1.0])[:, None, None])
+    depth = np.where(inside, 1 - z / 2, 1.0)[None]
+    albedo = np.stack([r / height, c / width, np.full_like(r, 0.5)])
+    return np.concatenate([(n + 1) / 2, depth, albedo]).astype(np.float32)
+
+
+def moved_pixel(code: int, height: int, width: int, r: float, c: float) -> tuple[float, float, int, int]:
+    """Where a point at (r, c) lands under augmentation `code`, and the output size."""
+    if code & 1:
+        r, c, height, width = c, r, width, height
+    if code & 2:
+        r = height - 1 - r
+    if code & 4:
+        c = width - 1 - c
+    return r, c, height, width
+
+
+@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
+def test_augmented_sphere_normals_equal_the_normals_of_the_moved_sphere(code):
+    """An off-centre sphere flipped/transposed must be exactly the sphere rendered at the moved centre."""
+    height, width, cy, cx, radius = 12, 16, 4.0, 10.0, 5.5
+    features = sphere_features(height, width, cy, cx, radius)
+    new_cy, new_cx, new_h, new_w = moved_pixel(code, height, width, cy, cx)
+    expected = sphere_features(new_h, new_w, new_cy, new_cx, radius)
+    got = augment(features, code, normals=True)
+    assert got.shape == expected.shape
+    np.testing.assert_allclose(got[:4], expected[:4], atol=1e-6)  # normal and depth
+    assert np.abs(features[:2] - 0.5).max() > 0.4  # the normals really vary: the test can fail
+
+
+def test_normal_rules_as_stated():
+    v = np.random.default_rng(0).random((7, 5, 5)).astype(np.float32)
+    np.testing.assert_allclose(augment(v, 4, normals=True)[0], 1 - v[0, :, ::-1])  # columns: nx -> -nx
+    np.testing.assert_allclose(augment(v, 4, normals=True)[1], v[1, :, ::-1])
+    np.testing.assert_allclose(augment(v, 2, normals=True)[1], 1 - v[1, ::-1, :])  # rows: ny -> -ny
+    t = augment(v, 1, normals=True)                                                  # transpose
+    np.testing.assert_allclose(t[0], 1 - v[1].T)
+    np.testing.assert_allclose(t[1], 1 - v[0].T)
+    np.testing.assert_allclose(t[2:], v[2:].transpose(0, 2, 1))
+
+
+@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
+def test_every_channel_moves_with_the_same_geometry(code):
+    image = np.arange(3 * 4 * 6, dtype=np.float32).reshape(3, 4, 6)
+    out = augment(image, code)
+    for r in range(4):
+        for c in range(6):
+            nr, nc, _, _ = moved_pixel(code, 4, 6, r, c)
+            np.testing.assert_array_equal(out[:, int(nr), int(nc)], image[:, r, c])
+
+
+def test_augment_leaves_its_input_alone_and_rejects_bad_codes():
+    image = np.random.default_rng(1).random((7, 4, 4)).astype(np.float32)
+    before = image.copy()
+    augment(image, 7, normals=True)
+    np.testing.assert_array_equal(image, before)
+    with pytest.raises(ValueError, match="code"):
+        augment(image, 8)
+
+
+def test_batch_stream_is_seeded_covers_each_epoch_and_resumes_mid_stream():
+    def take(stream, n):
+        it = iter(stream)
+        return [next(it) for _ in range(n)]
+
+    full = take(BatchStream(10, 3, seed=5), 12)
+    assert full == take(BatchStream(10, 3, seed=5), 12)
+    assert full != take(BatchStream(10, 3, seed=6), 12)
+    assert take(BatchStream(10, 3, seed=5, start_batch=7), 5) == full[7:]
+    flat = [row for batch in full for row, _ in batch]
+    assert sorted(flat[:10]) == list(range(10)) and sorted(flat[10:20]) == list(range(10))
+    assert flat[:10] != flat[10:20]  # a new permutation each epoch
+    codes = {code for batch in full for _, code in batch}
+    assert codes <= set(range(N_AUGMENTATIONS)) and len(codes) > 4
+
+
+def test_dataset_items_are_augmented_store_rows(store):
+    reader = PatchReader(store, "train")
+    dataset = PatchDataset(reader)
+    raw = reader[2]
+    item = dataset[(2, 5)]
+    np.testing.assert_array_equal(item["noisy"].numpy(), augment(raw["noisy"], 5))
+    np.testing.assert_array_equal(item["reference"].numpy(), augment(raw["reference"], 5))
+    np.testing.assert_array_equal(item["features"].numpy(), augment(raw["features"], 5, normals=True))
+    assert item["noisy"].dtype == torch.float32 and item["noisy"].shape == (3, 16, 16)
+
+
+def test_loader_batches_do_not_depend_on_workers(store):
+    reader = PatchReader(store, "train")
+
+    def batches(workers, start):
+        it = iter(train_loader(reader, batch_size=4, seed=3, start_batch=start, num_workers=workers))
+        return [next(it) for _ in range(3)]
+
+    torch.manual_seed(0)
+    serial = batches(0, 0)
+    assert torch.equal(torch.get_rng_state(), torch.manual_seed(0).get_state())  # global RNG untouched
+    parallel = batches(2, 0)
+    resumed = batches(0, 1)
+    for a, b in zip(serial, parallel):
+        for key in ("noisy", "features", "reference"):
+            assert torch.equal(a[key], b[key])
+    assert torch.equal(serial[1]["noisy"], resumed[0]["noisy"])
+    assert serial[0]["noisy"].shape == (4, 3, 16, 16)
+    assert all(torch.isfinite(b[k]).all() for b in serial for k in b)
+
+
+def test_validation_rows_and_fingerprint(store):
+    rows = load_rows(PatchReader(store, "val"), 5)
+    assert rows["features"].shape == (5, 7, 16, 16)
+    with pytest.raises(ValueError, match="split 'test' has no diffuse patches"):
+        load_rows(PatchReader(store, "test"), 5)
+    assert store_fingerprint(store) == store_fingerprint(store)
+    assert len(store_fingerprint(store)) == 64

@@ -1,0 +1,254 @@
+"""Evaluation on a real tiny render set (2 scenes x 2 spp, 32x32) with the noisy input and OIDN on CPU."""
+import csv
+import json
+import math
+import shutil
+from collections import defaultdict
+
+import numpy as np
+import pyoidn
+import pytest
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from admc.pipeline.config import load_config
+from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, time_denoiser
+from admc.pipeline.evaluate import EvalError, best_percent, evaluate, find_test_images
+from admc.pipeline.metrics import METRICS, score, to_ldr
+from admc.pipeline.stages import render_corpus
+from admc.stores.exr import read_exr, write_exr
+
+METRIC_KEYS = [m.key for m in METRICS]
+
+
+@pytest.fixture(scope="module")
+def renders(variant, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("eval_renders")
+    cfg = load_config(None, [f"run.workdir='{tmp}'", "run.scheduler=sync", "render.resolution=[32, 32]",
+                             "render.spp=[2, 4]", "render.reference_spp=64", "corpus.n_scenes=2"])
+    return render_corpus(cfg, progress=False).renders_dir
+
+
+@pytest.fixture(scope="module")
+def evaluated(renders, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval_out")
+    images = find_test_images(renders)
+    return evaluate(images, [NoisyInput(), OidnDenoiser()], out, progress=False, repeats=1, warmup=0), out
+
+
+def _read_table(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_find_test_images_reads_folders_and_sidecars(renders):
+    images = find_test_images(renders)
+    assert [(t.scene_id, t.spp) for t in images] == [(s, spp) for s in sorted(p.name for p in renders.iterdir())
+                                                     for spp in (2, 4)]
+    for t in images:
+        side = json.loads(t.noisy_path.with_suffix(".json").read_text())
+        assert t.render_seconds == side["render_seconds"] > 0
+        assert t.reference_path.name == "reference.exr"
+    one = images[0].scene_id
+    assert {t.scene_id for t in find_test_images(renders, [one])} == {one}
+
+
+def test_find_test_images_names_what_is_missing(renders, tmp_path):
+    scene = sorted(p for p in renders.iterdir())[0]
+    broken = tmp_path / "renders" / scene.name
+    shutil.copytree(scene, broken)  # follows the links: real files
+    with pytest.raises(EvalError, match="no such scene folder"):
+        find_test_images(tmp_path / "renders", ["nope"])
+    (broken / "spp0004.json").unlink()
+    with pytest.raises(EvalError, match=r"spp0004\.json: sidecar missing"):
+        find_test_images(tmp_path / "renders")
+    (broken / "reference.exr").unlink()
+    with pytest.raises(EvalError, match=f"{scene.name}: reference.exr missing"):
+        find_test_images(tmp_path / "renders")
+    with pytest.raises(EvalError, match="no renders folder"):
+        find_test_images(tmp_path / "absent")
+
+
+def test_writes_every_output(evaluated):
+    result, out = evaluated
+    for name in ("per_image.csv", "results.json", "table1.md", "table1.csv", "error_vs_time.png", "equal_time.md"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert set(result.files.values()) == {out / n for n in ("per_image.csv", "results.json", "table1.md",
+                                                             "table1.csv", "error_vs_time.png", "equal_time.md")}
+    assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
+    doc = json.loads((out / "results.json").read_text())
+    assert set(doc["metrics"]) == set(METRIC_KEYS)
+    assert all(doc["metrics"][k]["definition"] for k in METRIC_KEYS)
+    assert doc["devices"]["oidn"].startswith("cpu (")
+    assert doc["timing"]["repeats"] == 1 and len(doc["images"]) == 8 and len(doc["path_tracer"]) == 4
+    md = (out / "table1.md").read_text()
+    assert "B.P." in md and "rtol" in md and "cpu (" in md and "(ref^2 + 0.01)" in md
+    assert {row["method"] for row in doc["equal_time"]} == {"noisy", "oidn"}
+    assert (out / "equal_time.md").read_text().count("\n| oidn |") == 2
+    per_image = _read_table(out / "per_image.csv")
+    assert len(per_image) == 12 and {r["method"] for r in per_image} == {"path tracer", "noisy", "oidn"}
+    for scene in result.scenes:
+        assert np.load(scene.reference).shape == (32, 32, 3)
+        assert set(scene.inputs) == {2, 4} and set(scene.outputs[2]) == {"noisy", "oidn"}
+
+
+def test_best_percent_columns_sum_to_100(evaluated):
+    _, out = evaluated
+    rows = _read_table(out / "table1.csv")
+    assert {int(r["spp"]) for r in rows} == {2, 4}
+    for spp in (2, 4):
+        at = [r for r in rows if int(r["spp"]) == spp]
+        assert len(at) == 2
+        for key in METRIC_KEYS:
+            assert sum(float(r[f"{key}_bp"]) for r in at) == pytest.approx(100.0, abs=1e-9)
+
+
+def test_best_percent_splits_ties():
+    per_image = [
+        {"a": 1.0, "b": 1.0, "c": 2.0},                # a, b tie for lowest
+        {"a": 0.5, "b": 0.7, "c": 0.5 * (1 + 1e-8)},   # a, c equal within rtol 1e-6
+        {"a": 3.0, "b": 3.0, "c": 3.0},                # three-way tie
+        {"a": 0.9, "b": 0.1, "c": 0.2},                # b alone
+    ]
+    lower = best_percent(per_image, lower_is_better=True)
+    assert lower == pytest.approx({"a": 25 * (1 / 2 + 1 / 2 + 1 / 3),
+                                   "b": 25 * (1 / 2 + 1 / 3 + 1), "c": 25 * (1 / 2 + 1 / 3)})
+    assert sum(lower.values()) == pytest.approx(100.0, abs=1e-12)
+    higher = best_percent(per_image, lower_is_better=False)
+    assert higher == pytest.approx({"a": 25 * (1 / 3 + 1), "b": 25 * (1 / 3 + 1), "c": 25 * (1 + 1 / 3)})
+
+
+def _independent_scores(image, ref):
+    """The three metrics written out again from their definitions, SSIM/PSNR by scikit-image."""
+    a, b = to_ldr(image), to_ldr(ref)
+    image, ref = image.astype(np.float64), ref.astype(np.float64)
+    return {"one_minus_ssim": 1 - structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+                                                        use_sample_covariance=False, channel_axis=-1,
+                                                        data_range=255),
+            "psnr": min(peak_signal_noise_ratio(b, a, data_range=255), 100.0),
+            "relmse": float(np.mean((image - ref) ** 2 / (ref ** 2 + 0.01)))}
+
+
+def test_table_matches_independent_recomputation(renders, evaluated):
+    result, out = evaluated
+    scores = defaultdict(list)
+    for t in find_test_images(renders):
+        ref = read_exr(t.reference_path)
+        ref = ref["diffuse"] + ref.get("specular", 0)
+        layers = read_exr(t.noisy_path)
+        noisy = layers["diffuse"] + layers.get("specular", 0)
+        oidn = pyoidn.denoise(noisy, layers["albedo"], layers["normal"], hdr=True, quality="high")
+        saved = np.load(next(r.image for r in result.records
+                             if (r.scene_id, r.spp, r.method) == (t.scene_id, t.spp, "oidn")))
+        np.testing.assert_allclose(saved, oidn, rtol=1e-6, atol=1e-7)
+        scores[(t.spp, "noisy")].append(_independent_scores(noisy, ref))
+        scores[(t.spp, "oidn")].append(_independent_scores(oidn, ref))
+    rows = _read_table(out / "table1.csv")
+    assert len(rows) == len(scores) == 4
+    for row in rows:
+        mine = scores[(int(row["spp"]), row["denoiser"])]
+        assert int(row["n_images"]) == len(mine) == 2
+        for key in METRIC_KEYS:
+            assert float(row[f"{key}_avg"]) == pytest.approx(np.mean([s[key] for s in mine]), rel=1e-6, abs=1e-9)
+
+
+def test_oidn_beats_noisy_input_at_lowest_spp(evaluated):
+    result, _ = evaluated
+    row = {r.method: r for r in result.table if r.spp == 2}
+    assert row["oidn"].average["relmse"] < 0.5 * row["noisy"].average["relmse"]
+    assert row["oidn"].best_percent["relmse"] == 100.0
+    noisy = {r.scene_id: r.relmse for r in result.records if r.spp == 2 and r.method == "noisy"}
+    for r in result.records:
+        if r.spp == 2 and r.method == "oidn":
+            assert r.relmse < noisy[r.scene_id]
+
+
+def test_nan_in_noisy_input_is_reported_not_fatal(renders, tmp_path):
+    scene = sorted(renders.iterdir())[0]
+    copy = tmp_path / "renders" / scene.name
+    shutil.copytree(scene, copy)
+    layers = read_exr(copy / "spp0002.exr")
+    layers["diffuse"][5, 7, :] = np.nan
+    layers["diffuse"][10, 3, 1] = np.inf
+    write_exr(copy / "spp0002.exr", layers)
+    result = evaluate(find_test_images(tmp_path / "renders"), [NoisyInput(), OidnDenoiser()], tmp_path / "out",
+                      progress=False, repeats=1, warmup=0)
+    raw = {r.spp: r for r in result.path_tracer}
+    assert raw[2].nonfinite == 4 and raw[4].nonfinite == 0
+    by_method = {(r.method, r.spp): r for r in result.records}
+    assert by_method[("noisy", 2)].nonfinite == 4
+    assert by_method[("oidn", 2)].nonfinite == 0
+    assert np.isfinite(np.load(by_method[("oidn", 2)].image)).all()
+    assert all(math.isfinite(getattr(r, k)) for r in result.records for k in METRIC_KEYS)
+    assert next(r for r in result.table if (r.spp, r.method) == (2, "noisy")).nonfinite == 4
+    assert "noisy inputs 4" in (tmp_path / "out" / "table1.md").read_text()
+
+
+def _synthetic_layers(h, w, seed=0):
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return {"diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
+            "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
+            "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32), "normal": normal}
+
+
+@pytest.mark.parametrize("size", [(1, 1), (127, 129), (37, 4000)])
+def test_odd_sizes_go_through_oidn_and_metrics(size):
+    layers = _synthetic_layers(*size)
+    ref = layers["diffuse"] + layers["specular"]
+    denoiser = OidnDenoiser(quality="fast")
+    assert denoiser.name == "oidn-fast" and isinstance(denoiser, Denoiser)
+    image, seconds = time_denoiser(denoiser, layers, repeats=1, warmup=0)
+    assert image.shape == (*size, 3) and image.dtype == np.float32 and np.isfinite(image).all()
+    assert seconds > 0
+    mine = score(image, ref)
+    assert all(math.isfinite(v) for v in mine.values())
+    if min(size) >= 11:  # scikit-image refuses images smaller than the 11x11 window
+        assert mine == pytest.approx(_independent_scores(image, ref), rel=1e-6)
+
+
+def test_oidn_sanitizes_nonfinite_colour():
+    layers = _synthetic_layers(16, 16)
+    layers["diffuse"][2, 2, 0] = np.nan
+    layers["specular"][4, 4, :] = -np.inf
+    denoiser = OidnDenoiser()
+    image = denoiser.denoise(layers)
+    assert denoiser.last_sanitized == 4 and np.isfinite(image).all()
+
+
+class _Shifted:
+    """A real (if useless) denoiser: the noisy image rolled by one pixel, to exercise the interface."""
+    name = "shifted"
+    device = "cpu"
+
+    def __init__(self, shape_error: bool = False):
+        self.calls = 0
+        self.shape_error = shape_error
+
+    def denoise(self, layers):
+        self.calls += 1
+        image = np.roll(layers["diffuse"], 1, axis=1)
+        return image[:-1] if self.shape_error else image
+
+    def synchronize(self):
+        pass
+
+
+def test_time_denoiser_warms_up_then_times_repeats():
+    layers = _synthetic_layers(8, 8)
+    shifted = _Shifted()
+    image, seconds = time_denoiser(shifted, layers, repeats=3, warmup=2)
+    assert shifted.calls == 5 and seconds >= 0
+    np.testing.assert_array_equal(image, np.roll(layers["diffuse"], 1, axis=1))
+    with pytest.raises(ValueError, match="returned shape"):
+        time_denoiser(_Shifted(shape_error=True), layers, repeats=1, warmup=0)
+
+
+def test_denoiser_names_are_checked(renders, tmp_path):
+    images = find_test_images(renders)[:1]
+    with pytest.raises(EvalError, match="unique"):
+        evaluate(images, [NoisyInput(), NoisyInput()], tmp_path, progress=False)
+    bad = _Shifted()
+    bad.name = "path tracer"
+    with pytest.raises(EvalError, match="reserved"):
+        evaluate(images, [bad], tmp_path, progress=False)

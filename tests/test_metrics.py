@@ -1,0 +1,100 @@
+"""Metrics: cross-checked against scikit-image, hand-computed cases, odd sizes and non-finite input."""
+import math
+
+import numpy as np
+import pytest
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from admc.pipeline import metrics
+
+
+def _pair(shape, seed=0, noise=0.2):
+    rng = np.random.default_rng(seed)
+    ref = rng.gamma(1.0, 0.5, shape).astype(np.float32)
+    return (ref + rng.normal(0, noise, shape)).astype(np.float32), ref
+
+
+def _from_levels(levels) -> np.ndarray:
+    """Linear values whose to_ldr is exactly `levels` (inverse of the gamma 2.2 encoding)."""
+    return ((np.asarray(levels, dtype=np.float64) / 255.0) ** 2.2).astype(np.float32)
+
+
+@pytest.mark.parametrize("shape", [(32, 32, 3), (127, 129, 3), (11, 11, 3), (40, 17, 3), (64, 48, 3)])
+def test_ssim_and_psnr_match_scikit_image(shape):
+    x, ref = _pair(shape, seed=sum(shape))
+    a, b = metrics.to_ldr(x), metrics.to_ldr(ref)
+    expected_ssim = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                          channel_axis=-1, data_range=255)
+    assert metrics.ssim(x, ref) == pytest.approx(expected_ssim, abs=1e-6)
+    assert metrics.psnr(x, ref) == pytest.approx(peak_signal_noise_ratio(b, a, data_range=255), abs=1e-6)
+    assert 0.0 < metrics.ssim(x, ref) < 0.99
+
+
+def test_relmse_hand_computed():
+    ref = np.array([[[0.0, 1.0, 10.0]]], dtype=np.float32)
+    x = np.array([[[0.1, 2.0, 10.0]]], dtype=np.float32)
+    # (0.1^2 / 0.01 + 1 / 1.01 + 0) / 3, no 0.5 factor
+    expected = (0.01 / 0.01 + 1.0 / 1.01 + 0.0) / 3.0
+    assert metrics.relmse(x, ref) == pytest.approx(expected, rel=1e-6)
+    assert metrics.relmse(ref, ref) == 0.0
+    assert metrics.relmse(np.full((4, 4, 3), 3.0), np.full((4, 4, 3), 1.0)) == pytest.approx(4.0 / 1.01)
+
+
+def test_to_ldr_clips_gamma_encodes_and_quantises():
+    x = np.array([[[-1.0, 0.0, 0.5], [1.0, 100.0, np.nan]]], dtype=np.float32)
+    ldr = metrics.to_ldr(x)
+    assert ldr.dtype == np.uint8
+    assert ldr.tolist() == [[[0, 0, round(255 * 0.5 ** (1 / 2.2))], [255, 255, 0]]]
+
+
+def test_psnr_hand_computed_and_capped():
+    ref = _from_levels(np.full((8, 8, 3), 100))
+    x = _from_levels(np.full((8, 8, 3), 101))
+    assert metrics.psnr(x, ref) == pytest.approx(10 * math.log10(255 ** 2 / 1.0), abs=1e-9)
+    assert metrics.psnr(ref, ref) == metrics.PSNR_CAP_DB == 100.0
+    assert metrics.ssim(ref, ref) == pytest.approx(1.0)
+
+
+def test_ssim_of_one_pixel_is_the_luminance_term():
+    """A 1x1 image has no variance: SSIM reduces to (2ab + C1) / (a^2 + b^2 + C1) per channel."""
+    ref = _from_levels([[[50, 120, 200]]])
+    x = _from_levels([[[60, 100, 200]]])
+    c1 = (0.01 * 255) ** 2
+    expected = np.mean([(2 * a * b + c1) / (a * a + b * b + c1) for a, b in ((60, 50), (100, 120), (200, 200))])
+    assert metrics.ssim(x, ref) == pytest.approx(expected, abs=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 5, 3), (10, 300, 3), (127, 129, 3), (37, 4000, 3)])
+def test_odd_sizes_give_finite_scores(shape):
+    x, ref = _pair(shape, seed=3)
+    scores = metrics.score(x, ref)
+    assert all(math.isfinite(v) for v in scores.values())
+    assert 0.0 < scores["one_minus_ssim"] < 2.0
+    assert metrics.score(ref, ref) == {"one_minus_ssim": pytest.approx(0.0, abs=1e-12), "psnr": 100.0, "relmse": 0.0}
+
+
+def test_nonfinite_values_score_as_zero_and_are_counted():
+    x, ref = _pair((16, 16, 3), seed=5)
+    broken = x.copy()
+    broken[0, 0, 0], broken[3, 4, :], broken[7, 7, 1] = np.nan, np.inf, -np.inf
+    zeroed = x.copy()
+    zeroed[0, 0, 0], zeroed[3, 4, :], zeroed[7, 7, 1] = 0.0, 0.0, 0.0
+    assert metrics.count_nonfinite(broken) == 5
+    assert metrics.score(broken, ref) == metrics.score(zeroed, ref)
+    assert all(math.isfinite(v) for v in metrics.score(broken, ref).values())
+
+
+def test_mismatched_shapes_raise():
+    with pytest.raises(ValueError, match="differ in shape"):
+        metrics.relmse(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)))
+    with pytest.raises(ValueError, match="non-empty"):
+        metrics.psnr(np.zeros((0, 4, 3)), np.zeros((0, 4, 3)))
+
+
+def test_metric_table_carries_definitions_and_directions():
+    by_key = {m.key: m for m in metrics.METRICS}
+    assert list(by_key) == ["one_minus_ssim", "psnr", "relmse"]
+    assert by_key["psnr"].lower_is_better is False
+    assert by_key["relmse"].lower_is_better and by_key["one_minus_ssim"].lower_is_better
+    assert "0.5" in by_key["relmse"].definition and "100 dB" in by_key["psnr"].definition
+    assert "sigma 1.5" in by_key["one_minus_ssim"].definition

@@ -1,0 +1,84 @@
+"""`admc-pipe train` as a user runs it: pretrain on a tiny corpus, resume, then fine-tune from its weights."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from admc.pipeline.config import load_config
+from admc.pipeline.train_stage import shipped_weights
+from admc.stores.checkpoints import load_checkpoint, load_weights
+
+ADMC = str(Path(sys.executable).parent / "admc-pipe")
+
+
+def settings(workdir, steps=4):
+    return [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]",
+            "render.reference_spp=16", "corpus.n_scenes=3", "tile.patch_size=32", "tile.crops_per_scene=2",
+            "tile.split=[0.5, 0.5, 0.0]", "tile.seed=1", "model.channels=8", "model.blocks=1",
+            "model.cond_channels=8", "model.encoder_channels=8", "model.critic_channels=4",
+            f"train.steps={steps}", "train.l1_warmup_steps=1", "train.critic_only_steps=1",
+            "train.head_tail_start_step=0", "train.val_every=2", "train.val_patches=2",
+            "train.checkpoint_every=2", "train.log_every=1", "train.threads=1"]
+
+
+def cli(*args):
+    return subprocess.run([ADMC, *args], capture_output=True, text=True, timeout=600)
+
+
+def flags(items):
+    return [arg for item in items for arg in ("--set", item)]
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("train")
+    out = cli("train", "--stage", "pretrain", *flags(settings(workdir)))
+    assert out.returncode == 0, out.stderr
+    return workdir, out
+
+
+def test_pretrain_writes_checkpoint_weights_and_logs(pretrained):
+    workdir, out = pretrained
+    run = workdir / "train" / "pretrain"
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 4
+    weights = load_weights(run / "weights-fp16.pt")
+    assert "diffuse" in weights["branches"] and "checkpoint:" in out.stdout
+    assert (run / "metrics.csv").read_text().count("\n") > 4
+    assert any((run / "tensorboard").rglob("events.out.tfevents.*"))
+
+
+def test_resume_continues_to_more_steps(pretrained):
+    workdir, _ = pretrained
+    out = cli("train", "--stage", "pretrain", "--resume", *flags(settings(workdir, steps=6)))
+    assert out.returncode == 0, out.stderr
+    assert load_checkpoint(workdir / "train" / "pretrain" / "checkpoint.pt")["step"] == 6
+
+
+def test_rerun_without_resume_refuses_to_overwrite(pretrained):
+    workdir, _ = pretrained
+    out = cli("train", "--stage", "pretrain", *flags(settings(workdir)))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "resume" in out.stderr
+
+
+def test_finetune_from_pretrained_weights(pretrained):
+    workdir, _ = pretrained
+    weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
+    out = cli("train", "--stage", "finetune", "--init", str(weights), *flags(settings(workdir, steps=2)))
+    assert out.returncode == 0, out.stderr
+    assert load_checkpoint(workdir / "train" / "finetune" / "checkpoint.pt")["step"] == 2
+
+
+def test_finetune_without_weights_says_what_to_pass(tmp_path):
+    cfg = load_config(None, settings(tmp_path))
+    assert shipped_weights(cfg.model, tmp_path) is None
+    out = cli("train", "--stage", "finetune", *flags(settings(tmp_path) + ["model.channels=6"]))
+    assert out.returncode == 2
+    assert "--init" in out.stderr
+
+
+def test_missing_init_file_is_named(tmp_path):
+    out = cli("train", "--stage", "finetune", "--init", str(tmp_path / "nope.pt"), *flags(settings(tmp_path)))
+    assert out.returncode == 2
+    assert "nope.pt" in out.stderr
