@@ -146,12 +146,14 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
           stage: Annotated[Stage, typer.Option(help="pretrain on the corpus, or finetune from pretrained weights.")] = Stage.pretrain,
           init: Annotated[Optional[Path], typer.Option(help="finetune from this checkpoint or weights file "
                                                             "(default: the shipped weights matching the model config).")] = None,
-          resume: Annotated[bool, typer.Option("--resume", help="continue the run in the output folder exactly.")] = False) -> None:
-    """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed)."""
+          restart: Annotated[bool, typer.Option("--restart", help="discard this stage's existing run and start over.")] = False) -> None:
+    """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed).
+
+    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer)."""
     from admc.pipeline.train_stage import run_training
 
     cfg = _load(config, set_, scheduler)
-    result = run_training(cfg, stage.value, init_from=init, resume=resume)
+    result = run_training(cfg, stage.value, init_from=init, restart=restart)
     for note in result.notes:
         console.print(note, markup=False)
     table = Table(title=f"{stage.value}: step {result.step}")
@@ -167,14 +169,61 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")
 
 
+WeightsOpt = Annotated[Optional[Path], typer.Option(
+    help="Weights or checkpoint (default: this config's finetune, else pretrain run, else the shipped weights).")]
+DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
+
+
+def _denoiser(cfg, weights: Optional[Path], device: str, tile: int):
+    import torch
+
+    from admc.model.denoiser import load_denoiser
+    from admc.pipeline.train_stage import default_weights
+
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    path = weights or default_weights(cfg)
+    console.print(f"weights: {path}")
+    return load_denoiser(path, device=device, tile=tile)
+
+
+@app.command()
+@_user_errors
+def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s) with admc layer names, or "
+                                                         "OIDN-style NAME.hdr.exr (+ NAME.alb.exr, NAME.nrm.exr).")],
+            output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
+                                                           "default: INPUT.denoised.exr beside it).")] = None,
+            weights: WeightsOpt = None, device: DeviceOpt = "auto",
+            tile: Annotated[int, typer.Option(help="Tile size in pixels (bounds memory; results are the same).")] = 512,
+            config: ConfigOpt = None, set_: SetOpt = None) -> None:
+    """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
+    from admc.pipeline.denoise_io import load_denoise_input, write_denoised
+
+    if output is not None and len(inputs) > 1:
+        raise typer.BadParameter("--output names one file; give one input, or leave it out")
+    model = _denoiser(_load(config, set_), weights, device, tile)
+    for path in inputs:
+        source = load_denoise_input(path)
+        result = model(source.layers)
+        target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
+        write_denoised(target, result, source=source)
+        for note in source.notes + result.notes:
+            console.print(f"  {note}", markup=False)
+        console.print(f"{path} -> {target}  ({'+'.join(result.branches)}, {result.seconds:.2f} s on {model.device})",
+                      markup=False)
+
+
 @app.command("eval")
 @_user_errors
-def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
-    """Table 1 on the test split's full images (noisy input vs OIDN), error vs time, and an HTML page."""
+def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
+          weights: WeightsOpt = None, device: DeviceOpt = "auto",
+          no_model: Annotated[bool, typer.Option("--no-model", help="Only the noisy input and OIDN.")] = False) -> None:
+    """Table 1 on the test split's full images (noisy input, OIDN, this model), error vs time, an HTML page."""
     from admc.pipeline.eval_stage import run_eval
 
     cfg = _load(config, set_, scheduler)
-    outcome = run_eval(cfg)
+    extra = [] if no_model else [_denoiser(cfg, weights, device, tile=512)]
+    outcome = run_eval(cfg, extra=extra)
     console.print(outcome.result.files["table1_md"].read_text(), markup=False)
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")
     console.print(f"HTML report: {outcome.report}")
@@ -216,18 +265,6 @@ def show_config(config: ConfigOpt = None, set_: SetOpt = None) -> None:
         console.print(f"[bold][{section}][/]")
         for key, value in values.items():
             console.print(f"{key} = {list(value) if isinstance(value, tuple) else value!r}", markup=False)
-
-
-def _not_built(name: str, issue: int, what: str):
-    def command() -> None:
-        err.print(f"[yellow]admc-pipe {name} is not built yet[/] (issue #{issue}: {what}).")
-        raise typer.Exit(2)
-    command.__doc__ = f"(not built yet, issue #{issue}) {what}"
-    return command
-
-
-app.command("denoise", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
-    _not_built("denoise", 5, "denoise your own EXR renders"))
 
 
 def main() -> None:

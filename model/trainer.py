@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from admc.stores.checkpoints import export_weights, load_checkpoint, load_weights, save_checkpoint
+from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from .branch import BranchTrainer
@@ -111,17 +111,7 @@ def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict
     if init_from is None:
         raise ValueError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
     init_from = Path(init_from)
-    try:
-        checkpoint = load_checkpoint(init_from)
-        nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in checkpoint["branches"].items()}
-        saved_model, transform = checkpoint["model"], checkpoint["transform"]
-    except ValueError as first:
-        try:
-            weights = load_weights(init_from)
-        except ValueError:
-            raise first from None
-        nets, saved_model = weights["branches"], weights["metadata"]["model"]
-        transform = weights["metadata"]["transform"]
+    nets, saved_model, transform = read_networks(init_from)
     if saved_model != dataclasses.asdict(model):
         diff = [k for k, v in dataclasses.asdict(model).items() if saved_model.get(k) != v]
         raise ValueError(f"{init_from}: its model settings differ from the configured ones in {diff}")

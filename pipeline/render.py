@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from admc.stores import exr
 EXR_NAME = "render.exr"
 SIDECAR_NAME = "render.json"
 FP16_MAX = 65504.0
-RENDER_CODE = code_version(integrator, scenes, exr)
+RENDER_CODE = code_version(integrator, scenes, exr, sys.modules[__name__])
 
 
 def derive_seed(base_seed: int, scene_id: str, spp: int, reference: bool) -> int:

@@ -107,28 +107,32 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
     origins = choose_crops(importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size,
                            candidates_per_crop, rng)
-    clamped: dict = {}
-    arrays = {"origin": origins,
-              "ref_diffuse": _fp16("ref_diffuse", _crops(tf.diffuse_forward(reference["diffuse"], reference["albedo"]),
-                                                         origins, patch_size), clamped)}
-    if has_specular:
-        arrays["ref_specular"] = _fp16("ref_specular", _crops(tf.specular_forward(reference["specular"]),
-                                                              origins, patch_size), clamped)
-    rows: dict[str, list] = {"noisy_diffuse": [], "noisy_specular": [], "features": [], "spp": [], "crop": []}
+    # One crop entry per row: the reference diffuse is demodulated by the *row's* albedo, the one
+    # inference has, so expm1(output) * (noisy albedo + eps) targets the reference radiance exactly
+    # even where a low-spp albedo estimate is noisy (rough plastic, texture edges).
+    rows: dict[str, list] = {name: [] for name in ("noisy_diffuse", "noisy_specular", "features", "ref_diffuse",
+                                                   "ref_specular", "spp", "origin")}
+    ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     for key in spp_inputs:
         layers = noisy[key]
         rows["noisy_diffuse"].append(_crops(tf.diffuse_forward(layers["diffuse"], layers["albedo"]),
                                             origins, patch_size))
+        rows["ref_diffuse"].append(_crops(tf.diffuse_forward(reference["diffuse"], layers["albedo"]),
+                                          origins, patch_size))
         if has_specular:
             rows["noisy_specular"].append(_crops(tf.specular_forward(layers["specular"]), origins, patch_size))
+            rows["ref_specular"].append(_crops(ref_specular, origins, patch_size))
         feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
         rows["features"].append(_crops(feats, origins, patch_size))
         rows["spp"].append(np.full(len(origins), int(key[3:]), dtype=np.int32))
-        rows["crop"].append(np.arange(len(origins), dtype=np.int32))
+        rows["origin"].append(origins)
+    clamped: dict = {}
+    arrays = {}
     for name, parts in rows.items():
         if parts:
             joined = np.concatenate(parts)
-            arrays[name] = joined if name in ("spp", "crop") else _fp16(name, joined, clamped)
+            arrays[name] = joined if name in ("spp", "origin") else _fp16(name, joined, clamped)
+    arrays["crop"] = np.arange(len(arrays["spp"]), dtype=np.int32)
 
     stats = {name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
              for name, a in arrays.items() if a.ndim == 4}

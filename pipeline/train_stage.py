@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import admc
 from admc.model.settings import ModelSettings
-from admc.model.trainer import TrainResult, train
+from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline.config import Config
 from admc.pipeline.stages import StageError, build_dataset
 
@@ -29,9 +30,18 @@ def train_dir(cfg: Config, stage: str) -> Path:
     return cfg.workdir_path("train") / stage
 
 
-def run_training(cfg: Config, stage: str, init_from: Path | None = None, resume: bool = False,
+def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart: bool = False,
                  progress: bool = True) -> TrainResult:
-    """Pretrain on the config's corpus, or fine-tune on it from `init_from` (default: the shipped weights)."""
+    """Pretrain on the config's corpus, or fine-tune on it from `init_from` (default: the shipped weights).
+
+    Like every stage, training is resumable: a run whose checkpoint exists continues from it (and does
+    nothing once complete); a changed architecture or store is refused by the trainer. `restart`
+    discards the existing run first.
+    """
+    out_dir = train_dir(cfg, stage)
+    if restart and out_dir.exists():
+        shutil.rmtree(out_dir)
+    resume = (out_dir / CHECKPOINT_NAME).is_file()
     if stage == "finetune" and init_from is None and not resume:
         init_from = shipped_weights(cfg.model)
         if init_from is None:
@@ -41,5 +51,19 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, resume:
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
-    return train(dataset.store, train_dir(cfg, stage), cfg.train, cfg.model, stage=stage, init_from=init_from,
-                 resume=resume, progress=progress)
+    return train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
+                 init_from=None if resume else init_from, resume=resume, progress=progress)
+
+
+def default_weights(cfg: Config) -> Path:
+    """What denoising and evaluation use when no weights are named: this config's fine-tuned run, else
+    its pretrained run, else the shipped weights for its [model]."""
+    for stage in ("finetune", "pretrain"):
+        candidate = train_dir(cfg, stage) / WEIGHTS_NAME
+        if candidate.is_file():
+            return candidate
+    shipped = shipped_weights(cfg.model)
+    if shipped is None:
+        raise StageError(f"no trained weights under {cfg.workdir_path('train')} and none shipped for this "
+                         "[model] config: run `admc-pipe train` or pass --weights")
+    return shipped

@@ -32,7 +32,7 @@ def _save(path: Path, obj: dict) -> None:
         torch.save(obj, tmp)
 
 
-def _load(path: Path, fmt: str) -> dict:
+def _load(path: Path, *formats: str) -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such file")
@@ -40,11 +40,11 @@ def _load(path: Path, fmt: str) -> dict:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: not a readable torch file (truncated or corrupt?): {exc}") from None
-    if not isinstance(obj, dict) or obj.get("format") != fmt:
+    if not isinstance(obj, dict) or obj.get("format") not in formats:
         found = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
-        raise CheckpointError(f"{path}: not an {fmt} file (format={found!r})")
+        raise CheckpointError(f"{path}: not an {' or '.join(formats)} file (format={found!r})")
     if obj.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: {fmt} format_version {obj.get('format_version')!r}, "
+        raise CheckpointError(f"{path}: {obj['format']} format_version {obj.get('format_version')!r}, "
                               f"this code reads {FORMAT_VERSION}")
     return obj
 
@@ -85,3 +85,13 @@ def load_weights(path: str | os.PathLike) -> dict[str, Any]:
     (load_state_dict casts them to the model's dtype)."""
     obj = _load(Path(path), WEIGHTS_FORMAT)
     return {"branches": obj["branches"], "metadata": obj["metadata"]}
+
+
+def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
+    """(branch -> {"generator", "critic"} state dicts, model settings, transform spec) from either a
+    training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at."""
+    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    if obj["format"] == WEIGHTS_FORMAT:
+        return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
+    nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in obj["branches"].items()}
+    return nets, obj["model"], obj["transform"]

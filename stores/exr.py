@@ -16,7 +16,9 @@ import OpenImageIO as oiio
 from admc.stores.atomic import publishing
 
 RGB = ("R", "G", "B")
+BEAUTY = ""  # the final image as plain R, G, B channels (what viewers show first)
 LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
+    BEAUTY: RGB,
     "diffuse": RGB,
     "specular": RGB,
     "albedo": RGB,
@@ -72,7 +74,7 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "ha
                            f"+-{HALF_MAX:g} that half precision would turn into inf; clamp them or use "
                            f"precision='float'")
         for i, channel in enumerate(LAYER_CHANNELS[name]):
-            channels[f"{name}.{channel}"] = np.ascontiguousarray(stored[:, :, i])
+            channels[_full_name(name, channel)] = np.ascontiguousarray(stored[:, :, i])
     with publishing(path) as tmp:
         OpenEXR.File(header, channels).write(str(tmp))
 
@@ -117,13 +119,16 @@ def _channel_names(exr: OpenEXR.File) -> list[str]:
     return [channel.name for channel in exr.header()["channels"]]
 
 
+def _full_name(layer: str, channel: str) -> str:
+    return f"{layer}.{channel}" if layer else channel
+
+
 def _group_layers(channel_names: Iterable[str]) -> dict[str, list[str]]:
-    """'diffuse.R' -> {'diffuse': ['R']}; channels without a layer prefix are left out."""
+    """'diffuse.R' -> {'diffuse': ['R']}; channels without a layer prefix form the BEAUTY layer ''."""
     grouped: dict[str, list[str]] = {}
     for full in channel_names:
-        if "." in full:
-            layer, channel = full.rsplit(".", 1)
-            grouped.setdefault(layer, []).append(channel)
+        layer, _, channel = full.rpartition(".")
+        grouped.setdefault(layer, []).append(channel)
     return grouped
 
 
@@ -160,7 +165,7 @@ def read_exr(path: Path, layers: list[str] | None = None) -> dict[str, np.ndarra
     for name in layers:
         planes = []
         for channel in LAYER_CHANNELS[name]:
-            plane = pixels[f"{name}.{channel}"].pixels
+            plane = pixels[_full_name(name, channel)].pixels
             if plane.shape != size:
                 raise ExrError(f"{path}: channel {name}.{channel} is {plane.shape[0]}x{plane.shape[1]}, "
                                f"the image is {size[0]}x{size[1]} (subsampled channels are not supported)")

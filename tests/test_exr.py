@@ -4,7 +4,7 @@ import OpenEXR
 import OpenImageIO as oiio
 import pytest
 
-from admc.stores.exr import (LAYER_CHANNELS, ExrError, exr_layers, nonfinite_report, read_exr, read_image,
+from admc.stores.exr import (BEAUTY, LAYER_CHANNELS, ExrError, exr_layers, nonfinite_report, read_exr, read_image,
                              write_exr)
 
 
@@ -152,11 +152,20 @@ def test_subsampled_channel_is_an_inconsistent_size(tmp_path):
         read_exr(tmp_path / "sub.exr")
 
 
-def test_file_without_admc_layers(tmp_path):
-    write_oiio(tmp_path / "rgb.exr", np.ones((4, 4, 3), np.float32))
-    assert exr_layers(tmp_path / "rgb.exr") == []
-    with pytest.raises(ExrError, match=r"rgb\.exr: holds no admc layer \(channels: [RGB], [RGB], [RGB]\)"):
-        read_exr(tmp_path / "rgb.exr")
+def test_plain_rgb_file_is_the_beauty_layer_only(tmp_path):
+    write_oiio(tmp_path / "rgb.exr", np.full((4, 4, 3), 0.5, np.float32))
+    assert exr_layers(tmp_path / "rgb.exr") == [BEAUTY]
+    np.testing.assert_array_equal(read_exr(tmp_path / "rgb.exr")[BEAUTY], np.full((4, 4, 3), 0.5, np.float32))
+    with pytest.raises(ExrError, match=r"rgb\.exr: has no layer 'diffuse'"):
+        read_exr(tmp_path / "rgb.exr", ["diffuse"])
+
+
+def test_beauty_round_trips_as_plain_rgb_channels(tmp_path):
+    image = np.random.default_rng(0).random((5, 6, 3), dtype=np.float32)
+    write_exr(tmp_path / "out.exr", {BEAUTY: image, "diffuse": image * 0.5}, precision="float")
+    assert sorted(OpenEXR.File(str(tmp_path / "out.exr")).header()["channels"][i].name for i in range(6)) == \
+        ["B", "G", "R", "diffuse.B", "diffuse.G", "diffuse.R"]
+    np.testing.assert_array_equal(read_exr(tmp_path / "out.exr")[BEAUTY], image)
 
 
 def test_openimageio_reads_what_write_exr_wrote(tmp_path):

@@ -48,18 +48,17 @@ def test_pretrain_writes_checkpoint_weights_and_logs(pretrained):
     assert any((run / "tensorboard").rglob("events.out.tfevents.*"))
 
 
-def test_resume_continues_to_more_steps(pretrained):
+def test_rerun_is_a_no_op_and_more_steps_resume(pretrained):
     workdir, _ = pretrained
-    out = cli("train", "--stage", "pretrain", "--resume", *flags(settings(workdir, steps=6)))
-    assert out.returncode == 0, out.stderr
-    assert load_checkpoint(workdir / "train" / "pretrain" / "checkpoint.pt")["step"] == 6
-
-
-def test_rerun_without_resume_refuses_to_overwrite(pretrained):
-    workdir, _ = pretrained
+    checkpoint = workdir / "train" / "pretrain" / "checkpoint.pt"
+    before = checkpoint.stat().st_mtime_ns
     out = cli("train", "--stage", "pretrain", *flags(settings(workdir)))
-    assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert "resume" in out.stderr
+    assert out.returncode == 0, out.stderr
+    assert load_checkpoint(checkpoint)["step"] == 4
+    out = cli("train", "--stage", "pretrain", *flags(settings(workdir, steps=6)))
+    assert out.returncode == 0, out.stderr
+    assert "resuming pretrain" in out.stdout
+    assert load_checkpoint(checkpoint)["step"] == 6 and checkpoint.stat().st_mtime_ns != before
 
 
 def test_finetune_from_pretrained_weights(pretrained):
@@ -82,3 +81,46 @@ def test_missing_init_file_is_named(tmp_path):
     out = cli("train", "--stage", "finetune", "--init", str(tmp_path / "nope.pt"), *flags(settings(tmp_path)))
     assert out.returncode == 2
     assert "nope.pt" in out.stderr
+
+
+def test_changed_architecture_is_refused_until_restart(pretrained):
+    workdir, _ = pretrained
+    changed = settings(workdir, steps=2) + ["model.blocks=2"]
+    out = cli("train", "--stage", "pretrain", *flags(changed))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "blocks" in out.stderr
+    out = cli("train", "--stage", "pretrain", "--restart", *flags(changed))
+    assert out.returncode == 0, out.stderr
+    assert load_checkpoint(workdir / "train" / "pretrain" / "checkpoint.pt")["model"]["blocks"] == 2
+
+
+def test_eval_includes_the_trained_model(pretrained):
+    workdir, _ = pretrained
+    weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
+    out = cli("eval", "--weights", str(weights), *flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1"]))
+    assert out.returncode == 0, out.stderr
+    table = (workdir / "eval" / "table1.csv").read_text()
+    assert {"noisy", "oidn", "admc"} <= {line.split(",")[1] for line in table.splitlines()[1:]}
+
+
+def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
+    import numpy as np
+    from admc.stores.exr import BEAUTY, read_exr, write_exr
+
+    workdir, _ = pretrained
+    weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
+    render = next((workdir / "renders").iterdir()) / "spp0002.exr"
+    out = cli("denoise", str(render), "-o", str(tmp_path / "a.exr"), "--weights", str(weights))
+    assert out.returncode == 0, out.stderr
+    layers = read_exr(tmp_path / "a.exr")
+    assert layers[BEAUTY].shape == (64, 64, 3) and np.isfinite(layers[BEAUTY]).all()
+
+    src = read_exr(render)
+    colour = src["diffuse"] + src.get("specular", 0)
+    for suffix, name, data in ((".hdr.exr", "diffuse", colour), (".alb.exr", "albedo", src["albedo"]),
+                               (".nrm.exr", "normal", src["normal"])):
+        write_exr(tmp_path / f"shot{suffix}", {BEAUTY: data}, precision="float")
+    out = cli("denoise", str(tmp_path / "shot.hdr.exr"), "--weights", str(weights))
+    assert out.returncode == 0, out.stderr
+    assert "diffuse only" in out.stdout  # a combined colour cannot be split: it says so
+    assert read_exr(tmp_path / "shot.denoised.exr")[BEAUTY].shape == (64, 64, 3)

@@ -1,0 +1,293 @@
+"""Denoise whole images of any size with the two trained branches, tile by tile where they are large.
+
+Large images run in tiles so CPU memory stays bounded. Each tile's network input is its core region
+plus a halo as wide as the network's receptive field radius (see `receptive_radius`); only the core
+of the output is kept. Every kept pixel then sees exactly the inputs it sees in an untiled run, so a
+tiled image equals the untiled one up to float rounding: no seams, and no blending window is needed.
+
+No padding is added by the denoiser: crops are taken inside the image (shifted inwards at its
+borders), so at the image border the network's own zero padding applies just as in an untiled run
+and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
+"""
+from __future__ import annotations
+
+import math
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .generator import Generator
+from .transforms import (
+    EPS,
+    RADIANCE_MAX,
+    diffuse_forward,
+    diffuse_inverse,
+    features,
+    sanitize,
+    specular_forward,
+    specular_inverse,
+)
+
+REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
+MISSING_DEPTH = 1.0
+"""Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
+environment pixels (no geometry information), and coverage 1."""
+
+# Largest log value an input can take; network outputs are clamped to it so the inverse stays finite.
+LOG_MAX = {
+    "diffuse": float(np.log1p(RADIANCE_MAX / EPS)),
+    "specular": float(np.log1p(RADIANCE_MAX)),
+}
+
+
+def _conv_radius(module: nn.Module) -> int:
+    """Sum of the spatial radii of every Conv2d in `module` (all of them lie on one chain)."""
+    return sum((m.kernel_size[0] // 2) * m.dilation[0] for m in module.modules() if isinstance(m, nn.Conv2d))
+
+
+def receptive_radius(generator: Generator) -> int:
+    """How many pixels away an input can still change an output pixel of `generator`.
+
+    Every spatial conv is 3x3 (radius 1): head 1, two per residual block, body conv 1, tail 2. The
+    encoder's one 3x3 conv runs beside the head and meets the image path at the first CFM layer, so it
+    adds max(head, encoder) rather than both. Paper config (16 blocks): 1 + 32 + 1 + 2 = 36, a 73x73
+    receptive field. The CFM condition nets are 1x1 and add nothing.
+    """
+    if not isinstance(generator, Generator):
+        raise TypeError(f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
+                        f"pass overlap= explicitly for other modules")
+    encoder = _conv_radius(generator.encoder) if generator.encoder is not None else 0
+    after_head = sum(_conv_radius(b) for b in generator.blocks) + _conv_radius(generator.body_conv)
+    after_head += _conv_radius(generator.tail)
+    return max(_conv_radius(generator.head), encoder) + after_head
+
+
+def axis_windows(size: int, tile: int, halo: int) -> list[tuple[int, int, int, int]]:
+    """(core_start, core_end, crop_start, crop_end) along one axis.
+
+    Cores split [0, size) into ceil(size / tile) near-equal parts (balanced, so no sliver tile).
+    Every crop has the same length, min(size, longest core + 2 * halo), so tiles can be batched, and
+    is shifted inwards at the image borders; each core then has `halo` pixels of real image on every
+    side that is not the image border.
+    """
+    if size < 1 or tile < 1 or halo < 0:
+        raise ValueError(f"axis_windows: need size >= 1, tile >= 1, halo >= 0; got {size}, {tile}, {halo}")
+    count = math.ceil(size / tile)
+    bounds = [round(i * size / count) for i in range(count + 1)]
+    crop = min(size, max(b - a for a, b in zip(bounds, bounds[1:])) + 2 * halo)
+    windows = []
+    for start, end in zip(bounds, bounds[1:]):
+        crop_start = min(max(start - halo, 0), size - crop)
+        windows.append((start, end, crop_start, crop_start + crop))
+    return windows
+
+
+def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int) -> Tensor:
+    """`generator(noisy, feats)` on (1, C, H, W) tensors, tile by tile; the output is float32.
+
+    With halo >= receptive_radius(generator) the result equals the untiled call up to float rounding.
+    """
+    _, _, height, width = noisy.shape
+    out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
+    for y0, y1, cy0, cy1 in axis_windows(height, tile, halo):
+        for x0, x1, cx0, cx1 in axis_windows(width, tile, halo):
+            crop = generator(noisy[..., cy0:cy1, cx0:cx1], feats[..., cy0:cy1, cx0:cx1])
+            out[..., y0:y1, x0:x1] = crop[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
+    return out
+
+
+@dataclass
+class DenoiseResult:
+    """One denoised image, its parts, what was repaired on the way in, and what it cost."""
+
+    image: np.ndarray                    # (H, W, 3) float32 linear HDR: diffuse + specular
+    diffuse: np.ndarray                  # (H, W, 3) float32 linear denoised diffuse (albedo re-applied)
+    specular: np.ndarray | None          # (H, W, 3) linear specular: denoised, or the input passed through
+    branches: tuple[str, ...]            # the branches whose network ran: ("diffuse",) or both
+    specular_passed_through: bool        # the input had specular but no specular generator was given
+    sanitized: dict[str, dict[str, int]] = field(default_factory=dict)  # layer -> nonzero repair counts
+    nonfinite_outputs: int = 0           # network output values that were NaN/Inf (set to 0)
+    tiles: int = 1                       # network calls per branch
+    network_seconds: float = 0.0         # generator time, synchronised (both branches)
+    seconds: float = 0.0                 # whole call: sanitising, transforms, networks, inverse
+
+    @property
+    def notes(self) -> list[str]:
+        """Plain sentences for the user about what happened beyond the obvious."""
+        notes = []
+        for layer, counts in self.sanitized.items():
+            what = ", ".join(f"{n} {kind}" for kind, n in counts.items())
+            notes.append(f"{layer}: repaired {what} value(s) before denoising")
+        if self.specular_passed_through:
+            notes.append("specular: no specular network given, the noisy specular was added unchanged")
+        if self.nonfinite_outputs:
+            notes.append(f"the network produced {self.nonfinite_outputs} non-finite value(s), set to 0")
+        return notes
+
+
+def _device_description(device: torch.device) -> str:
+    if device.type == "cuda":
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
+    return f"{device.type} ({torch.get_num_threads()} threads)"
+
+
+class FullImageDenoiser:
+    """Sanitize -> forward transforms -> diffuse [and specular] generator -> inverse -> linear HDR.
+
+    `diffuse` and `specular` are admc Generators (or any module called as `(noisy, features)`; those
+    need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
+    largest core edge run at once; `overlap` is the halo around each core, by default the largest
+    receptive radius of the two generators, and a smaller one is refused (tiles would then differ
+    from the untiled image: seams). `dtype`: None = bfloat16 autocast on CUDA, float32 on CPU.
+    `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
+    image then pays the compile time).
+    Implements pipeline.denoisers.Denoiser (name, device, denoise, synchronize).
+    """
+
+    name = "admc"
+
+    def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
+                 tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
+                 compile: bool = False) -> None:
+        if tile < 1:
+            raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
+        self.torch_device = torch.device(device)
+        if self.torch_device.type == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
+        self.dtype = dtype or (torch.bfloat16 if self.torch_device.type == "cuda" else torch.float32)
+        self.channels_last = self.torch_device.type == "cuda"
+        self.generators = {"diffuse": self._prepare(diffuse)}
+        if specular is not None:
+            self.generators["specular"] = self._prepare(specular)
+        radius = max((receptive_radius(g) if isinstance(g, Generator) else 0) for g in self.generators.values())
+        if overlap is None:
+            if not all(isinstance(g, Generator) for g in self.generators.values()):
+                raise ValueError("FullImageDenoiser: overlap must be given for modules that are not admc Generators")
+            overlap = radius
+        if overlap < radius:
+            raise ValueError(f"FullImageDenoiser: overlap {overlap} is below the receptive field radius {radius} "
+                             f"of the generator; tiles would not match the untiled image (visible seams)")
+        if compile:
+            self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
+        self.tile = tile
+        self.overlap = overlap
+        self.device = _device_description(self.torch_device)
+
+    def _prepare(self, generator: nn.Module) -> nn.Module:
+        generator = generator.to(self.torch_device).eval()
+        if self.channels_last:
+            generator = generator.to(memory_format=torch.channels_last)
+        return generator
+
+    def synchronize(self) -> None:
+        if self.torch_device.type == "cuda":
+            torch.cuda.synchronize(self.torch_device)
+
+    def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
+        return self(layers).image
+
+    def __call__(self, layers: dict[str, np.ndarray]) -> DenoiseResult:
+        """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays."""
+        start = time.perf_counter()
+        clean, sanitized = sanitize_layers(layers)
+        albedo = clean["albedo"]
+        inputs = {"diffuse": diffuse_forward(clean["diffuse"], albedo)}
+        run_specular = "specular" in clean and "specular" in self.generators
+        if run_specular:
+            inputs["specular"] = specular_forward(clean["specular"])
+        feats = self._tensor(features(clean["normal"], clean["depth"], albedo, clean["coverage"]))
+
+        self.synchronize()
+        net_start = time.perf_counter()
+        outputs, nonfinite, tiles = {}, 0, 1
+        for branch, log_input in inputs.items():
+            out, tiles = self._run(self.generators[branch], self._tensor(log_input), feats)
+            nonfinite += int((~torch.isfinite(out)).sum())
+            outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
+        outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
+        network_seconds = time.perf_counter() - net_start
+
+        diffuse = diffuse_inverse(outputs["diffuse"], albedo)
+        specular = specular_inverse(outputs["specular"]) if run_specular else clean.get("specular")
+        image = diffuse + specular if specular is not None else diffuse.copy()
+        return DenoiseResult(
+            image=image, diffuse=diffuse, specular=specular, branches=tuple(inputs),
+            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
+            nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds,
+            seconds=time.perf_counter() - start,
+        )
+
+    def _tensor(self, hwc: np.ndarray) -> Tensor:
+        t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
+        return t.contiguous(memory_format=torch.channels_last) if self.channels_last else t
+
+    def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor) -> tuple[Tensor, int]:
+        autocast = (torch.autocast(self.torch_device.type, dtype=self.dtype) if self.dtype != torch.float32
+                    else nullcontext())
+        with torch.inference_mode(), autocast:
+            out = run_tiled(generator, noisy, feats, self.tile, self.overlap)
+        _, _, height, width = noisy.shape
+        return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+
+
+def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
+    """Check shapes, fill a missing depth/coverage (MISSING_DEPTH, 1) and sanitize every layer.
+
+    Returns the clean float32 layers and, per layer with any repair, the nonzero counts of NaN,
+    +-Inf and out-of-range values (negative radiance or albedo, radiance above RADIANCE_MAX, ...).
+    """
+    missing = [name for name in REQUIRED_LAYERS if name not in layers]
+    if missing:
+        raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)} (has {', '.join(sorted(layers))})")
+    channels = {"diffuse": 3, "specular": 3, "albedo": 3, "normal": 3, "depth": 1, "coverage": 1}
+    size = np.shape(layers["diffuse"])[:2]
+    for name, array in layers.items():
+        if name in channels and np.shape(array) != (*size, channels[name]):
+            raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(array)}, "
+                             f"expected {(*size, channels[name])} to match diffuse")
+    if size[0] < 1 or size[1] < 1:
+        raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
+    filled = dict(layers)
+    filled.setdefault("depth", np.full((*size, 1), MISSING_DEPTH, dtype=np.float32))
+    filled.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
+    clean, report = {}, {}
+    for name in channels:
+        if name in filled:
+            clean[name], counts = sanitize(filled[name], name)
+            nonzero = {kind: n for kind, n in counts.items() if n}
+            if nonzero:
+                report[name] = nonzero
+    return clean, report
+
+
+def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
+                  compile: bool = False) -> FullImageDenoiser:
+    """Both branches' generators from a training checkpoint or exported weights, ready to denoise.
+
+    Refuses weights trained on other transforms than this code applies (their outputs would be
+    inverted wrongly); a file without a specular branch denoises diffuse only.
+    """
+    from admc.stores.checkpoints import CheckpointError, read_networks
+
+    from .settings import ModelSettings
+    from .transforms import transform_spec
+
+    nets, model, transform = read_networks(path)
+    if transform != transform_spec():
+        changed = sorted(k for k in set(transform) | set(transform_spec()) if transform.get(k) != transform_spec().get(k))
+        raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
+    if "diffuse" not in nets:
+        raise CheckpointError(f"{path}: has no diffuse branch")
+    config = ModelSettings(**model).generator_config()
+    generators = {}
+    for branch, state in nets.items():
+        generator = Generator(config)
+        generator.load_state_dict({k: v.float() for k, v in state["generator"].items()})
+        generators[branch] = generator.eval()
+    return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
+                             compile=compile)

@@ -1,0 +1,172 @@
+"""Read the EXRs a user brings to `admc-pipe denoise` and write the denoised result.
+
+Two layouts are accepted:
+
+* one multi-layer EXR with admc's layer names: `diffuse.R/G/B`, `albedo.R/G/B`, `normal.X/Y/Z`,
+  optional `specular.R/G/B`, `depth.Z`, `coverage.A` (what `admc-pipe render` writes);
+* Open Image Denoise style separate files sharing a base name: the colour `NAME.hdr.exr` (or
+  `NAME.exr`), `NAME.alb.exr`, `NAME.nrm.exr`, optional `NAME.diffuse.exr` + `NAME.specular.exr`
+  (then they are the split and the colour is not needed) and optional `NAME.depth.exr`. A combined
+  colour alone cannot be split, so it is denoised as diffuse only (demodulated by albedo; a mirror
+  or glass reflection is then treated as texture-free light, which the diffuse network was not
+  trained on: expect it blurrier than with a proper split).
+
+Missing depth becomes the constant depth feature 1.0 (the value of environment pixels, so no false
+geometry edges) with coverage 1. NaN/Inf pixels are not errors: they are counted here and repaired
+by the denoiser, which reports what it did. Everything else that is wrong raises DenoiseInputError
+(or ExrError from the reader) naming the file.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from admc.model.denoiser import MISSING_DEPTH, DenoiseResult
+from admc.stores.exr import BEAUTY, exr_layers, nonfinite_report, read_exr, read_image, write_exr
+
+SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
+            "specular": ".specular.exr", "depth": ".depth.exr"}
+"""File name endings of the separate-file layout (the first three are Open Image Denoise's)."""
+
+
+class DenoiseInputError(ValueError):
+    """The files given to `denoise` do not form one complete, consistent input."""
+
+
+@dataclass
+class DenoiseInput:
+    """Layers ready for FullImageDenoiser, where each came from, and what was assumed."""
+
+    layers: dict[str, np.ndarray]                 # diffuse, [specular], albedo, normal, depth, coverage
+    sources: dict[str, Path]                      # layer -> the file it was read from
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def paths(self) -> set[Path]:
+        return {p.resolve() for p in self.sources.values()}
+
+    @property
+    def nonfinite(self) -> dict[str, dict[str, int]]:
+        """NaN/Inf (and invalid negative) counts per layer as read, before the denoiser repairs them."""
+        return nonfinite_report(self.layers)
+
+
+def load_denoise_input(path: Path) -> DenoiseInput:
+    """Read a multi-layer EXR, or the separate files of NAME (given as NAME.hdr.exr, NAME.exr or NAME)."""
+    path = Path(path)
+    if path.is_file() and not path.name.endswith(SUFFIXES["colour"]):
+        layers = exr_layers(path)  # raises ExrError naming the file if it is no EXR or is corrupt
+        if "diffuse" in layers or not _sibling(_base(path), "albedo").exists():
+            return _load_multilayer(path, layers)
+    return _load_separate(_base(path), given=path)
+
+
+def _base(path: Path) -> Path:
+    """NAME from NAME.hdr.exr, NAME.alb.exr (any ending of SUFFIXES), NAME.exr or NAME itself."""
+    for ending in (*SUFFIXES.values(), ".exr"):
+        if path.name.endswith(ending):
+            return path.with_name(path.name[: -len(ending)])
+    return path
+
+
+def _sibling(base: Path, role: str) -> Path:
+    return base.with_name(base.name + SUFFIXES[role])
+
+
+def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
+    missing = [name for name in ("diffuse", "albedo", "normal") if name not in present]
+    if missing:
+        raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)} needed to denoise (it holds "
+                                f"{', '.join(present) or 'no admc layers'}); expected diffuse.R/G/B, "
+                                f"albedo.R/G/B, normal.X/Y/Z and optionally specular, depth.Z, coverage.A (or, as "
+                                f"separate files, {path.stem}.alb.exr and {path.stem}.nrm.exr beside it)")
+    wanted = [name for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage") if name in present]
+    layers = read_exr(path, wanted)
+    notes = []
+    if "specular" not in layers:
+        notes.append(f"{path.name}: no specular layer, only the diffuse network runs")
+    result = DenoiseInput(layers, {name: path for name in layers}, notes)
+    _complete_depth(result, path.name)
+    return result
+
+
+def _load_separate(base: Path, given: Path) -> DenoiseInput:
+    files = {role: _sibling(base, role) for role in SUFFIXES}
+    plain = base.with_name(base.name + ".exr")
+    if plain.is_file() and (given == plain or not files["colour"].exists()):
+        files["colour"] = plain
+    split = files["diffuse"].exists() or files["specular"].exists()
+    if split and not (files["diffuse"].exists() and files["specular"].exists()):
+        have, lack = ("diffuse", "specular") if files["diffuse"].exists() else ("specular", "diffuse")
+        raise DenoiseInputError(f"{files[have]}: found without {files[lack]}; give both parts of the split or neither")
+    if not split and not files["colour"].exists():
+        raise DenoiseInputError(f"{given}: no such file, and no colour file {files['colour'].name} or "
+                                f"{base.name}.exr beside it")
+    for role in ("albedo", "normal"):
+        if not files[role].exists():
+            raise DenoiseInputError(f"{files[role]}: missing; the {role} file is required beside "
+                                    f"{(files['diffuse'] if split else files['colour']).name}")
+
+    roles = ["diffuse", "specular"] if split else ["colour"]
+    roles += ["albedo", "normal"] + (["depth"] if files["depth"].exists() else [])
+    layers, sources = {}, {}
+    for role in roles:
+        name = "diffuse" if role == "colour" else role
+        layers[name] = _read_plain(files[role], channels=1 if role == "depth" else 3)
+        sources[name] = files[role]
+    _check_sizes(layers, sources)
+    if not split:
+        notes = [f"{files['colour'].name}: one combined colour and no {base.name}.diffuse.exr/.specular.exr "
+                 f"split, denoised as diffuse only"]
+    elif files["colour"].exists():
+        notes = [f"{files['colour'].name}: not read, the diffuse/specular split is used"]
+    else:
+        notes = []
+    result = DenoiseInput(layers, sources, notes)
+    _complete_depth(result, base.name)
+    return result
+
+
+def _read_plain(path: Path, channels: int) -> np.ndarray:
+    """First `channels` channels of a plain EXR (R,G,B[,A] or X,Y,Z); one channel is spread to three."""
+    exr_layers(path)  # refuses files that are not EXR (read_image would read a PNG happily)
+    image = read_image(path)
+    if image.shape[2] == 1 and channels == 3:
+        image = np.repeat(image, 3, axis=2)
+    if image.shape[2] < channels:
+        raise DenoiseInputError(f"{path}: has {image.shape[2]} channel(s), needs {channels}")
+    return np.ascontiguousarray(image[:, :, :channels])
+
+
+def _check_sizes(layers: dict[str, np.ndarray], sources: dict[str, Path]) -> None:
+    sizes = {name: a.shape[:2] for name, a in layers.items()}
+    if len(set(sizes.values())) > 1:
+        listing = ", ".join(f"{sources[n].name} {h}x{w}" for n, (h, w) in sizes.items())
+        raise DenoiseInputError(f"{sources['diffuse'].parent}: the input files differ in size ({listing}, as HxW)")
+
+
+def _complete_depth(result: DenoiseInput, where: str) -> None:
+    """Depth and coverage the denoiser needs, filled where the input has none (and said so)."""
+    size = result.layers["diffuse"].shape[:2]
+    if "depth" not in result.layers:
+        result.layers["depth"] = np.full((*size, 1), MISSING_DEPTH, dtype=np.float32)
+        result.notes.append(f"{where}: no depth, using the constant depth feature {MISSING_DEPTH} "
+                            f"(as for environment pixels) and coverage 1")
+    result.layers.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
+
+
+def write_denoised(path: Path, result: DenoiseResult, *, source: DenoiseInput, layers: bool = True) -> None:
+    """EXR (float32) with the final image as plain R, G, B and, if `layers`, the `diffuse.*` and
+    `specular.*` parts; written atomically. Refuses to overwrite any file of `source`."""
+    path = Path(path)
+    if path.suffix.lower() != ".exr":
+        raise DenoiseInputError(f"{path}: the output must be an .exr file")
+    if path.resolve() in source.paths:
+        raise DenoiseInputError(f"{path}: is one of the input files; choose another output name")
+    planes = {BEAUTY: result.image}
+    if layers:
+        planes.update({name: part for name, part in (("diffuse", result.diffuse), ("specular", result.specular))
+                       if part is not None})
+    write_exr(path, planes, precision="float", attributes={"admc_branches": ",".join(result.branches)})

@@ -1,0 +1,250 @@
+"""The full-image denoiser: exact tiling, transform plumbing, branch selection, hostile inputs (CPU)."""
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from admc.model.denoiser import (
+    LOG_MAX,
+    MISSING_DEPTH,
+    FullImageDenoiser,
+    axis_windows,
+    receptive_radius,
+    run_tiled,
+)
+from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
+from admc.model.transforms import diffuse_forward, specular_forward
+
+TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny nets gain nothing from threads on the shared 2-core machine; restore afterwards."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def strong_generator(seed: int, scale: float = 1.0) -> Generator:
+    """A random generator with large weights and positive biases: unlike the 0.1-scaled init, pixels
+    far out in its receptive field change its output clearly, so a too-small halo shows."""
+    torch.manual_seed(seed)
+    g = Generator(TINY).eval()
+    scaled_kaiming_(g, scale)
+    with torch.no_grad():
+        for m in g.modules():
+            if isinstance(m, nn.Conv2d):
+                m.bias.uniform_(0.0, 0.1)
+    return g
+
+
+class PassThrough(nn.Module):
+    """A real module that returns its log-domain input: the denoiser must then give back its input."""
+
+    def forward(self, noisy, features):
+        return noisy.clone()
+
+
+class CallCounter(Generator):
+    """A generator that counts its forward calls."""
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.calls = 0
+        self.register_forward_hook(lambda *_: setattr(self, "calls", self.calls + 1))
+
+
+def render_layers(height, width, seed=0, specular=True):
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=(height, width, 3)).astype(np.float32)
+    layers = {
+        "diffuse": rng.gamma(0.5, 2.0, size=(height, width, 3)).astype(np.float32),
+        "albedo": rng.random((height, width, 3), dtype=np.float32),
+        "normal": normal / np.linalg.norm(normal, axis=-1, keepdims=True),
+        "depth": rng.uniform(1.0, 20.0, size=(height, width, 1)).astype(np.float32),
+        "coverage": np.ones((height, width, 1), dtype=np.float32),
+    }
+    if specular:
+        layers["specular"] = rng.gamma(0.3, 1.0, size=(height, width, 3)).astype(np.float32)
+    return layers
+
+
+def test_receptive_radius_is_two_per_block_plus_four_and_matches_an_impulse():
+    assert receptive_radius(Generator(GeneratorConfig())) == 36  # paper config: 73x73 field
+    g = strong_generator(0)
+    radius = receptive_radius(g)
+    assert radius == 2 * TINY.blocks + 4
+    x, f = torch.rand(1, 3, 41, 41), torch.rand(1, 7, 41, 41)
+    for poked in (x, f):  # the image path and the encoder path reach equally far
+        with torch.no_grad():
+            before = g(x, f)
+            poked[0, :, 20, 20] += 1.0
+            changed = (g(x, f) - before).abs().amax(dim=1)[0] > 0
+        ys, xs = torch.nonzero(changed, as_tuple=True)
+        assert (ys - 20).abs().max() == radius and (xs - 20).abs().max() == radius
+
+
+@pytest.mark.parametrize("size,tile,halo", [(70, 32, 8), (1, 32, 8), (33, 32, 8), (4000, 512, 36), (9, 4, 30)])
+def test_axis_windows_cover_the_axis_with_a_full_halo_inside_each_crop(size, tile, halo):
+    windows = axis_windows(size, tile, halo)
+    assert windows[0][0] == 0 and windows[-1][1] == size
+    assert all(a[1] == b[0] for a, b in zip(windows, windows[1:]))
+    assert len({c1 - c0 for _, _, c0, c1 in windows}) == 1  # one crop size: tiles can be batched
+    for start, end, c0, c1 in windows:
+        assert end - start <= tile and 0 <= c0 <= start < end <= c1 <= size
+        assert c0 == 0 or start - c0 >= halo
+        assert c1 == size or c1 - end >= halo
+
+
+def test_tiled_equals_untiled_with_the_receptive_halo_and_not_with_less():
+    g = strong_generator(1)
+    radius = receptive_radius(g)
+    x, f = torch.rand(1, 3, 70, 90) * 3, torch.rand(1, 7, 70, 90)
+    with torch.no_grad():
+        untiled = g(x, f)
+        tiled = run_tiled(g, x, f, tile=32, halo=radius)
+        short = run_tiled(g, x, f, tile=32, halo=radius - 1)
+    scale = untiled.abs().max().item()
+    assert scale > 1.0
+    assert (tiled - untiled).abs().max().item() <= 1e-5 * scale
+    assert (short - untiled).abs().max().item() > 1e-3 * scale  # the check can fail
+
+
+def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
+    # weights at 0.7x Kaiming keep the log outputs O(1), clear of the clamp that would hide errors
+    diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
+    layers = render_layers(70, 90)
+    tiled = FullImageDenoiser(diffuse, specular, tile=32)(layers)
+    untiled = FullImageDenoiser(diffuse, specular, tile=512)(layers)
+    assert tiled.tiles == 9 and untiled.tiles == 1
+    assert tiled.branches == ("diffuse", "specular")
+    albedo = layers["albedo"]
+    log_tiled = diffuse_forward(tiled.diffuse, albedo), specular_forward(tiled.specular)
+    log_untiled = diffuse_forward(untiled.diffuse, albedo), specular_forward(untiled.specular)
+    for a, b, branch in zip(log_tiled, log_untiled, ("diffuse", "specular")):  # the networks' domain
+        assert 1.0 < b.max() < LOG_MAX[branch] - 0.1  # nothing clamped
+        assert np.abs(a - b).max() <= 1e-5
+    for part in ("image", "diffuse", "specular"):
+        a, b = getattr(tiled, part), getattr(untiled, part)
+        assert a.shape == (70, 90, 3) and a.dtype == np.float32
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_overlap_below_the_receptive_radius_is_refused():
+    g = strong_generator(0)
+    with pytest.raises(ValueError, match="receptive field radius 8"):
+        FullImageDenoiser(g, None, overlap=7)
+    with pytest.raises(ValueError, match="overlap must be given"):
+        FullImageDenoiser(PassThrough(), None)
+
+
+def test_pass_through_network_returns_the_input_radiance():
+    layers = render_layers(37, 23)
+    layers["diffuse"][0, 0] = 5000.0  # bright, still within the FP16-safe range
+    result = FullImageDenoiser(PassThrough(), PassThrough(), tile=16, overlap=0)(layers)
+    np.testing.assert_allclose(result.diffuse, layers["diffuse"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(result.specular, layers["specular"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(result.image, layers["diffuse"] + layers["specular"], rtol=1e-5, atol=1e-6)
+    assert result.sanitized == {}
+
+
+def test_scene_without_specular_runs_only_the_diffuse_network():
+    diffuse, specular = CallCounter(TINY), CallCounter(TINY)
+    denoiser = FullImageDenoiser(diffuse, specular, tile=16)
+    result = denoiser(render_layers(20, 40, specular=False))
+    assert specular.calls == 0 and diffuse.calls == 6  # 2 x 3 tiles
+    assert result.branches == ("diffuse",) and result.specular is None
+    np.testing.assert_array_equal(result.image, result.diffuse)
+    denoiser(render_layers(20, 40))
+    assert specular.calls > 0
+
+
+def test_specular_without_a_specular_network_is_passed_through_and_said():
+    layers = render_layers(12, 12)
+    result = FullImageDenoiser(strong_generator(0), None)(layers)
+    assert result.branches == ("diffuse",) and result.specular_passed_through
+    np.testing.assert_array_equal(result.specular, layers["specular"])
+    np.testing.assert_allclose(result.image, result.diffuse + layers["specular"], rtol=1e-6)
+    assert any("noisy specular" in note for note in result.notes)
+
+
+def hostile_layers(height, width):
+    layers = render_layers(height, width, seed=5)
+    layers["diffuse"][0, 0] = 1e6                         # firefly beyond FP16
+    layers["diffuse"][-1, -1, 1] = np.nan
+    layers["specular"][height // 2, width // 2] = np.inf
+    layers["albedo"][0, -1] = -0.5
+    layers["normal"][-1, 0] = np.nan
+    layers["depth"][0, 0] = -np.inf
+    return layers
+
+
+@pytest.mark.parametrize("size", [(1, 1), (127, 129), (3, 200), (70, 90)])
+def test_outputs_are_finite_on_hostile_inputs_of_odd_sizes(size):
+    g_d, g_s = strong_generator(6), strong_generator(7)
+    layers = hostile_layers(*size)
+    result = FullImageDenoiser(g_d, g_s, tile=48)(layers)
+    assert result.image.shape == (*size, 3)
+    for part in (result.image, result.diffuse, result.specular):
+        assert np.isfinite(part).all() and (part >= 0).all()
+    assert result.sanitized["specular"]["posinf"] == 3
+    if size != (1, 1):
+        assert result.sanitized["diffuse"] == {"nan": 1, "above_max": 3}
+        assert result.sanitized["albedo"]["below_min"] == 3
+        assert result.sanitized["normal"]["nan"] == 3
+    assert result.network_seconds > 0 and result.seconds >= result.network_seconds
+
+
+@pytest.mark.parametrize("case", ["black", "white_albedo", "environment_only"])
+def test_outputs_are_finite_on_degenerate_scenes(case):
+    layers = render_layers(17, 31, seed=9)
+    if case == "black":
+        for name in ("diffuse", "specular", "albedo"):
+            layers[name][:] = 0.0
+    elif case == "white_albedo":
+        layers["albedo"][:] = 1.0
+    else:
+        layers["coverage"][:] = 0.0
+        layers["depth"][:] = 0.0
+    result = FullImageDenoiser(strong_generator(2), strong_generator(3), tile=16)(layers)
+    assert np.isfinite(result.image).all() and (result.image >= 0).all()
+    assert result.sanitized == {}
+
+
+def test_missing_depth_and_coverage_become_the_environment_depth():
+    layers = render_layers(16, 16, specular=False)
+    complete = dict(layers, depth=np.full((16, 16, 1), MISSING_DEPTH, np.float32),
+                    coverage=np.ones((16, 16, 1), np.float32))
+    del layers["depth"], layers["coverage"]
+    denoiser = FullImageDenoiser(strong_generator(4), None)
+    np.testing.assert_array_equal(denoiser(layers).image, denoiser(complete).image)
+
+
+def test_bad_layers_raise_naming_the_layer():
+    denoiser = FullImageDenoiser(strong_generator(0), None)
+    layers = render_layers(8, 8)
+    with pytest.raises(KeyError, match="albedo"):
+        denoiser({k: v for k, v in layers.items() if k != "albedo"})
+    with pytest.raises(ValueError, match="'normal' has shape"):
+        denoiser(dict(layers, normal=layers["normal"][:4]))
+
+
+def test_denoiser_follows_the_evaluation_interface():
+    denoiser = FullImageDenoiser(strong_generator(0), None)
+    assert denoiser.name == "admc" and denoiser.device.startswith("cpu")
+    image = denoiser.denoise(render_layers(8, 8, specular=False))
+    denoiser.synchronize()
+    assert image.shape == (8, 8, 3) and image.dtype == np.float32
+
+
+def test_bfloat16_autocast_stays_close_to_float32():
+    layers = render_layers(20, 20, specular=False)
+    generator = strong_generator(2, scale=0.7)
+    exact = FullImageDenoiser(generator, None)(layers)
+    low = FullImageDenoiser(generator, None, dtype=torch.bfloat16)(layers)
+    log_exact = diffuse_forward(exact.diffuse, layers["albedo"])
+    log_low = diffuse_forward(low.diffuse, layers["albedo"])
+    error = np.abs(log_low - log_exact).max()
+    assert 0 < error < 0.05 * log_exact.max()  # bf16 really ran (not equal), and within its precision
