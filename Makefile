@@ -5,19 +5,26 @@ CONFIG  ?=
 ARGS    ?=
 CFGARG  := $(if $(CONFIG),--config $(CONFIG),)
 
-.PHONY: setup demo render dataset test bench clean
+.PHONY: setup demo render dataset train eval test bench clean
 
 setup:
 	@bash scripts/setup.sh
 
-demo: dataset               ## the main job on the embedded default corpus (grows with each stage)
+demo: dataset               ## the whole product on the embedded default corpus: dataset, fine-tune, Table 1
+	$(ADMC) train --stage finetune $(CFGARG) $(ARGS)
+	$(ADMC) eval $(CFGARG) $(ARGS)
 
 render: setup               ## render the scene corpus to EXR (cached, resumable)
 	$(ADMC) render $(CFGARG) $(ARGS)
 
-
 dataset: setup              ## render + tile the corpus into the Zarr patch store, then summarise it
 	$(ADMC) dataset $(CFGARG) $(ARGS)
+
+train: setup                ## pretrain on the corpus (STAGE=finetune to start from the shipped weights)
+	$(ADMC) train --stage $(or $(STAGE),pretrain) $(CFGARG) $(ARGS)
+
+eval: setup                 ## Table 1, error vs time and the HTML page for the test split
+	$(ADMC) eval $(CFGARG) $(ARGS)
 
 test: setup                 ## the test suite (real renders, tiny sizes)
 	$(PY) -m pytest -q --durations=15 $(ARGS)

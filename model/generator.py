@@ -30,6 +30,7 @@ class GeneratorConfig:
     cond_channels: int = 32
     encoder_channels: int = 128
     mode: str = "cfm"
+    input_skip: bool = False  # admc option: out = ReLU(noisy + tail), so training starts at the identity
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -110,7 +111,8 @@ def scaled_kaiming_(module: nn.Module, scale: float) -> None:
 class Generator(nn.Module):
     """One branch's denoiser: `forward(noisy, features)` -> denoised, same (N, 3, H, W) shape.
 
-    Fully convolutional with same-padding everywhere, so any H and W work.
+    Fully convolutional with same-padding everywhere, so any H and W work. The authors' network has
+    no skip from the input to the output; `input_skip` adds one (see GeneratorConfig).
     """
 
     def __init__(self, config: GeneratorConfig = GeneratorConfig()) -> None:
@@ -170,4 +172,9 @@ class Generator(nn.Module):
             f = block(f, cond)
         if self.body_cfm is not None:
             f = self.body_cfm(f, cond)
-        return self.tail(head + self.body_conv(f))
+        out = head + self.body_conv(f)
+        if self.config.input_skip:
+            # Predict a correction of the (log-domain) input: an untrained network passes the noisy
+            # input through, so short CPU trainings improve on it instead of re-learning it first.
+            return torch.relu(noisy + self.tail[:-1](out))
+        return self.tail(out)

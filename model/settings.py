@@ -47,15 +47,17 @@ class ModelSettings:
     mode: str = "cfm"             # cfm | none | concat | shift | scale (the paper's ablations)
     critic_channels: int = 64     # critic base width (VGG-128: 64)
     critic_norm: str = "layer"    # none | layer | batch (batch = the authors' choice)
+    input_skip: bool = False      # admc option: the generator corrects its input (the authors': no skip)
 
     def check(self) -> None:
         _positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels"))
         _require(self.mode in MODES, "mode", f"{self.mode!r} is not one of {MODES}")
         _require(self.critic_norm in NORMS, "critic_norm", f"{self.critic_norm!r} is not one of {NORMS}")
+        _require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
 
     def generator_config(self) -> GeneratorConfig:
         return GeneratorConfig(channels=self.channels, blocks=self.blocks, cond_channels=self.cond_channels,
-                               encoder_channels=self.encoder_channels, mode=self.mode)
+                               encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip)
 
     def critic_config(self, patch_size: int) -> CriticConfig:
         return CriticConfig(base_channels=self.critic_channels, norm=self.critic_norm, patch_size=patch_size)
@@ -147,7 +149,8 @@ def paper_settings() -> tuple[ModelSettings, TrainSettings]:
 def small_settings() -> tuple[ModelSettings, TrainSettings]:
     """A CPU default: tiny networks, 300 steps of batch 2 on 128x128 patches, ~0.6 s per step for both
     branches on one busy core here (~3 min); a demo of the whole pipeline, not a good denoiser."""
-    model = ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32, critic_channels=8)
+    model = ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32, critic_channels=8,
+                          input_skip=True)
     train = replace(TrainSettings(), steps=300, batch_size=2, l1_warmup_steps=100, critic_only_steps=50,
                     lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=50,
                     lr_milestones=(200,), val_every=100, val_patches=16, checkpoint_every=100,

@@ -139,6 +139,7 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     patches.write_scene(store, split, scene_id, arrays, {
         "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
         "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
+        "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
     })
     return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
             "has_specular": has_specular, "sanitized": sanitized, "fp16_clamped": clamped}

@@ -24,8 +24,14 @@ if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && "$PY" -c "import admc, 
   echo "setup: up to date ($VENV)"
   exit 0
 fi
-"$PY" -m pip install -q --upgrade pip
-"$PY" -m pip install -q "torch==2.13.0"
-"$PY" -m pip install -q -e ".[dev]"
+log="$VENV/setup.log"
+pip_install() {  # quiet unless it fails: setuptools' build warnings are noise to a user
+  "$PY" -m pip install -q "$@" >>"$log" 2>&1 || { cat "$log"; echo "setup: pip install $* failed (log: $log)"; exit 1; }
+}
+: >"$log"
+echo "setup: installing torch 2.13.0 (CPU), then admc and its dependencies into $VENV"
+pip_install --upgrade pip
+pip_install "torch==2.13.0"
+pip_install -e ".[dev]"
 echo "$want" > "$stamp"
 echo "setup: done ($VENV, $("$PY" -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"

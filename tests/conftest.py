@@ -8,3 +8,26 @@ from admc.pipeline.variants import use_variant
 def variant() -> str:
     """Activate the render variant once per test session (like Mitsuba's own variant fixtures)."""
     return use_variant("auto")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_torch_thread():
+    """Tiny nets gain nothing from intra-op threads, and on a shared 2-core machine OpenMP's spinning
+    threads made the network tests ~15x slower: one thread for the session, restored after."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def build_tiny_store(workdir, size: int, patch: int):
+    """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data."""
+    from admc.pipeline.config import load_config
+    from admc.pipeline.stages import build_dataset
+
+    cfg = load_config(None, [f"run.workdir='{workdir}'", "run.scheduler=sync", f"render.resolution=[{size}, {size}]",
+                             "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
+                             f"tile.patch_size={patch}", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"])
+    return build_dataset(cfg, progress=False).store

@@ -4,28 +4,16 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import build_tiny_store
 from admc.model.data import (N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, store_fingerprint,
                              train_loader)
 from admc.stores.patches import PatchReader
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def store(tmp_path_factory, variant):
-    from admc.pipeline.config import load_config
-    from admc.pipeline.stages import build_dataset
     tmp = tmp_path_factory.mktemp("data_store")
-    cfg = load_config(None, [f"run.workdir='{tmp}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-                             "tile.patch_size=16", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"])
-    return build_dataset(cfg, progress=False).store
+    return build_tiny_store(tmp, size=32, patch=16)
 
 
 def sphere_features(height: int, width: int, cy: float, cx: float, radius: float) -> np.ndarray:

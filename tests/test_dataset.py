@@ -65,6 +65,8 @@ def test_store_attributes_invert_the_reference(built):
     assert root.attrs["feature_channels"] == list(tf.FEATURE_CHANNELS)
     summary = result.tiles[0]
     group = root[f"{summary['split']}/{summary['scene_id']}"]
+    renders = {t.key for t in result.tasks if t.stage == "render"}
+    assert set(group.attrs["render_keys"].values()) <= renders and len(group.attrs["render_keys"]) == 3
     reference = exr.read_exr(result.renders_dir / summary["scene_id"] / "reference.exr")
     for row in (0, group["spp"].shape[0] - 1):
         y, x = group["origin"][int(group["crop"][row])]

@@ -13,14 +13,6 @@ TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=1
 H, W = 24, 40
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def denoiser():
     torch.manual_seed(0)

@@ -18,15 +18,6 @@ from admc.model.transforms import diffuse_forward, specular_forward
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny nets gain nothing from threads on the shared 2-core machine; restore afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def strong_generator(seed: int, scale: float = 1.0) -> Generator:
     """A random generator with large weights and positive biases: unlike the 0.1-scaled init, pixels
     far out in its receptive field change its output clearly, so a too-small halo shows."""

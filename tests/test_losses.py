@@ -8,16 +8,6 @@ from admc.model.generator import Generator, GeneratorConfig
 from admc.model.losses import critic_loss, generator_loss, gradient_penalty
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny nets gain nothing from intra-op threads, and on a shared 2-core machine OpenMP's
-    spinning threads made these tests ~15x slower; run them on one thread and restore after."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 class LinearCritic(nn.Module):
     """D(x) = <w, x> + b: its input gradient is w everywhere, so the GP is (||w|| - 1)^2 exactly.
     Built on nn.Linear so autocast really runs it in bf16 when the GP fails to turn autocast off."""

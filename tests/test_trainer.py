@@ -10,6 +10,7 @@ import torch
 import zarr
 from zarr.storage import LocalStore
 
+from conftest import build_tiny_store
 from admc.model.branch import BranchTrainer
 from admc.model.data import load_rows
 from admc.model.generator import MODES
@@ -26,23 +27,10 @@ SETTINGS = TrainSettings(steps=7, batch_size=2, l1_warmup_steps=2, critic_only_s
                          num_workers=0, threads=0, device="cpu", seed=1, max_bad_steps=3)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def store(tmp_path_factory, variant):
-    from admc.pipeline.config import load_config
-    from admc.pipeline.stages import build_dataset
     tmp = tmp_path_factory.mktemp("train_store")
-    cfg = load_config(None, [f"run.workdir='{tmp}'", "run.scheduler=sync", "render.resolution=[64, 64]",
-                             "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-                             "tile.patch_size=32", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"])
-    path = build_dataset(cfg, progress=False).store
+    path = build_tiny_store(tmp, size=64, patch=32)
     assert len(PatchReader(path, "train", branch="specular")) > 0  # both branches get trained below
     return path
 

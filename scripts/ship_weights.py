@@ -1,0 +1,53 @@
+#!/usr/bin/env python3
+"""Publish a training run's fp16 weights in weights/ with a manifest entry saying how they were made.
+
+    python scripts/ship_weights.py RUN_DIR NAME --note "how it was trained"
+
+The manifest is what `admc-pipe train --stage finetune` (and denoise/eval without --weights) search for
+weights matching the configured [model]; an entry for the same architecture is replaced.
+"""
+import argparse
+import csv
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+from admc.stores.checkpoints import load_checkpoint, load_weights
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
+
+
+def last_validation(run: Path) -> dict:
+    values: dict[str, float] = {}
+    with open(run / "metrics.csv") as f:
+        for row in csv.DictReader(f):
+            if "/val_" in row["tag"]:
+                values[row["tag"]] = round(float(row["value"]), 5)
+    return values
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path)
+    parser.add_argument("name")
+    parser.add_argument("--note", default="")
+    args = parser.parse_args()
+    weights = load_weights(args.run / "weights-fp16.pt")
+    checkpoint = load_checkpoint(args.run / "checkpoint.pt")
+    target = WEIGHTS / f"{args.name}.pt"
+    WEIGHTS.mkdir(exist_ok=True)
+    shutil.copyfile(args.run / "weights-fp16.pt", target)
+    entry = {"file": target.name, "model": weights["metadata"]["model"], "stage": checkpoint["stage"],
+             "steps": checkpoint["step"], "settings": checkpoint["settings"],
+             "validation": last_validation(args.run), "note": args.note,
+             "sha256": hashlib.sha256(target.read_bytes()).hexdigest(), "bytes": target.stat().st_size}
+    manifest_path = WEIGHTS / "manifest.json"
+    manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"weights": []}
+    manifest["weights"] = [e for e in manifest["weights"] if e["model"] != entry["model"]] + [entry]
+    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    print(f"{target} ({entry['bytes'] / 2**20:.2f} MiB), manifest: {manifest_path}")
+
+
+if __name__ == "__main__":
+    main()
