@@ -10,6 +10,7 @@ from admc.pipeline import evaluate, render, report_html, tile
 from admc.pipeline.config import Config
 from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser
 from admc.pipeline.metrics import METRICS
+from admc.pipeline.scenes import SceneSpec
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
 
@@ -25,9 +26,9 @@ class EvalOutcome:
     scene_ids: list[str]
 
 
-def eval_scene_ids(cfg: Config) -> list[str]:
+def eval_scenes(cfg: Config) -> list[SceneSpec]:
     """The corpus scenes assigned to the eval split (the same stable per-scene rule as tiling)."""
-    return [s.scene_id for s in render.corpus(cfg)
+    return [s for s in render.corpus(cfg)
             if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
 
 
@@ -47,16 +48,14 @@ def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]
 
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:
     """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN and `extra` denoisers."""
-    from admc.pipeline.stages import run_cached
+    from admc.pipeline.stages import render_corpus
 
-    scene_ids = eval_scene_ids(cfg)
-    if not scene_ids:
+    specs = eval_scenes(cfg)
+    if not specs:
         raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "
                              f"(tile.split = {list(cfg.tile.split)}); add scenes or change tile.split")
-    specs = [s for s in render.corpus(cfg) if s.scene_id in scene_ids]
-    renders = render.render_tasks(cfg, specs)
-    published, _ = run_cached(cfg, [t for levels in renders.values() for t in levels.values()], progress)
-    renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
+    scene_ids = [s.scene_id for s in specs]
+    renders_dir = render_corpus(cfg, progress, specs).renders_dir
     images = evaluate.find_test_images(renders_dir, scene_ids)
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
@@ -65,7 +64,8 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = report_html.write_report(
         out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
-        table_markdown=result.files["table1_md"].read_text(),
+        # the page prints the metric definitions in its header, so the table's own copy is left out
+        table_markdown=result.files["table1_md"].read_text().split("\n## Metric definitions")[0],
         metric_definitions={m.label: m.definition for m in METRICS},
         plots=[result.files["error_vs_time"]], images=_report_images(result), device=devices,
         notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])

@@ -50,9 +50,9 @@ def _sidecars(renders: dict[str, dict[str, Task]], published: dict[str, Path]) -
             for levels in renders.values() for t in levels.values()]
 
 
-def render_corpus(cfg: Config, progress: bool = True) -> StageResult:
-    """Render every (scene, spp) of the corpus that is not cached yet; link the EXRs under workdir/renders."""
-    specs = render.corpus(cfg)
+def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | None = None) -> StageResult:
+    """Render every (scene, spp) of the corpus (or of `specs`) not cached yet; link the EXRs under workdir/renders."""
+    specs = render.corpus(cfg) if specs is None else specs
     renders = render.render_tasks(cfg, specs)
     tasks = [t for levels in renders.values() for t in levels.values()]
     published, cached = run_cached(cfg, tasks, progress)

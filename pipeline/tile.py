@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.model import transforms as tf
+from admc.pipeline.render import EXR_NAME
 from admc.stores import exr, patches
 
 SPLITS = patches.SPLITS
@@ -92,8 +93,6 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
                seed: int) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}."""
-    from admc.pipeline.render import EXR_NAME  # the render stage's file name inside its task folder
-
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from admc.pipeline.config import load_config
-from admc.pipeline.eval_stage import EvalStageError, run_eval, eval_scene_ids
+from admc.pipeline.eval_stage import EvalStageError, eval_scenes, run_eval
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
@@ -19,7 +19,7 @@ def overrides(workdir, split="[0.0, 0.0, 1.0]"):
 
 def test_eval_writes_tables_plot_and_html(tmp_path, variant):
     outcome = run_eval(load_config(None, overrides(tmp_path)), progress=False)
-    assert outcome.scene_ids == eval_scene_ids(load_config(None, overrides(tmp_path)))
+    assert outcome.scene_ids == [s.scene_id for s in eval_scenes(load_config(None, overrides(tmp_path)))]
     files = outcome.result.files
     for name in ("table1_md", "table1_csv", "results_json", "per_image_csv", "error_vs_time", "equal_time"):
         assert files[name].is_file() and files[name].stat().st_size > 0, name
