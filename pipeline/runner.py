@@ -179,3 +179,8 @@ class _Bar:
                 self.progress.console.print(f"[red]{outcome.message}[/]")
         trouble = f" ({self.failed} failed, {self.skipped} skipped)" if self.failed or self.skipped else ""
         self.progress.update(self.bar, advance=1, description=f"done {label}{trouble}")
+        if self.enabled and not self.progress.console.is_terminal:
+            # a live bar draws nothing into a log file or CI output: one plain line per task instead
+            task = self.progress.tasks[0]
+            self.progress.console.print(f"[{int(task.completed)}/{int(task.total)}] done {label}{trouble}",
+                                        markup=False, highlight=False)
