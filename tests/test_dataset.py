@@ -188,3 +188,22 @@ def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
     from PIL import Image
     image = Image.open(sheet)
     assert image.size[0] == 4 * 16 + 3 * 4 and image.size[1] >= 16
+
+
+def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
+    """A folder of the user's Mitsuba XML scenes renders and tiles like the procedural corpus."""
+    from test_scenes import QUAD_OBJ, SCENE_XML
+
+    scenes = tmp_path / "my_scenes"
+    (scenes / "meshes").mkdir(parents=True)
+    (scenes / "meshes" / "floor.obj").write_text(QUAD_OBJ)
+    (scenes / "kitchen.xml").write_text(SCENE_XML)
+    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
+                             "render.reference_spp=8", "render.resolution=[32, 32]", "corpus.n_scenes=0",
+                             f"corpus.xml_dirs=['{scenes}']", "tile.patch_size=16", "tile.crops_per_scene=2",
+                             "tile.split=[1.0, 0.0, 0.0]"])
+    result = build_dataset(cfg, progress=False)
+    assert [s.scene_id for s in result.scenes] == ["xml-kitchen"]
+    assert patches.list_scenes(result.store, "train") == ["xml-kitchen"]
+    reader = patches.PatchReader(result.store, "train", branch="specular")
+    assert len(reader) == 2, "the rough plastic sphere makes it a specular scene"
