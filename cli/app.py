@@ -175,16 +175,13 @@ DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 
 def _denoiser(cfg, weights: Optional[Path], device: str, tile: int):
-    import torch
-
     from admc.model.denoiser import load_denoiser
+    from admc.model.trainer import resolve_device
     from admc.pipeline.train_stage import default_weights
 
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
     path = weights or default_weights(cfg)
     console.print(f"weights: {path}")
-    return load_denoiser(path, device=device, tile=tile)
+    return load_denoiser(path, device=resolve_device(device), tile=tile)
 
 
 @app.command()

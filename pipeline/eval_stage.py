@@ -11,6 +11,7 @@ from admc.pipeline.config import Config
 from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser
 from admc.pipeline.metrics import METRICS
 from admc.pipeline.scenes import SceneSpec
+from admc.pipeline.stages import render_corpus
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
 
@@ -48,8 +49,6 @@ def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]
 
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:
     """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN and `extra` denoisers."""
-    from admc.pipeline.stages import render_corpus
-
     specs = eval_scenes(cfg)
     if not specs:
         raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "

@@ -25,7 +25,6 @@ from admc.stores import exr
 
 EXR_NAME = "render.exr"
 SIDECAR_NAME = "render.json"
-FP16_MAX = 65504.0
 RENDER_CODE = code_version(integrator, scenes, exr, sys.modules[__name__])
 
 
@@ -40,9 +39,9 @@ def _half_safe(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], in
     clamped, out = 0, {}
     for name, arr in layers.items():
         finite = np.isfinite(arr)
-        over = finite & (np.abs(arr) > FP16_MAX)
+        over = finite & (np.abs(arr) > exr.HALF_MAX)
         clamped += int(over.sum())
-        out[name] = np.where(over, np.sign(arr) * FP16_MAX, arr).astype(np.float32)
+        out[name] = np.where(over, np.sign(arr) * exr.HALF_MAX, arr).astype(np.float32)
     return out, clamped
 
 

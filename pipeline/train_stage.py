@@ -46,7 +46,7 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
         init_from = shipped_weights(cfg.model)
         if init_from is None:
             raise StageError("finetune needs pretrained weights: pass --init CHECKPOINT (e.g. "
-                             f"{train_dir(cfg, 'pretrain') / 'weights-fp16.pt'}); no shipped weights in weights/ "
+                             f"{train_dir(cfg, 'pretrain') / WEIGHTS_NAME}); no shipped weights in weights/ "
                              "match this [model] config")
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
