@@ -221,7 +221,7 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     cfg = _load(config, set_, scheduler)
     extra = [] if no_model else [_denoiser(cfg, weights, device, tile=512)]
     outcome = run_eval(cfg, extra=extra)
-    console.print(outcome.result.files["table1_md"].read_text(), markup=False)
+    console.print(outcome.result.files["table1_md"].read_text(), markup=False, highlight=False, soft_wrap=True)
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")
     console.print(f"HTML report: {outcome.report}")
     console.print(f"tables and plots: {outcome.report.parent}")

@@ -82,6 +82,7 @@ class EvalConfig:
     split: str
     out_dir: str
     oidn_quality: str
+    optix: str
     repeats: int
     warmup: int
 
@@ -89,6 +90,7 @@ class EvalConfig:
         _require(self.split in ("train", "val", "test"), "eval.split", f"must be train, val or test, got {self.split!r}")
         _require(self.oidn_quality in ("fast", "balanced", "high"), "eval.oidn_quality",
                  f"must be fast, balanced or high, got {self.oidn_quality!r}")
+        _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")
         _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
         _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
 

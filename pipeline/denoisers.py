@@ -3,8 +3,8 @@
 The trained admc model joins the evaluation by implementing `Denoiser` (see model/): the evaluation
 only ever calls `denoise` and `synchronize`, and prints `name` and `device`.
 
-The OptiX denoiser is not offered: Mitsuba's `mi.OptixDenoiser` needs a CUDA variant and, for
-normals, the sensor's world-to-camera transform, which the render layers do not carry.
+NVIDIA's OptiX denoiser joins through Mitsuba (`mi.OptixDenoiser`) where the `cuda_ad_rgb` variant
+runs; `optix_unavailable_reason` says why not elsewhere, so a report can state it.
 """
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ import time
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+from admc.pipeline.variants import available_variants
 
 OIDN_QUALITIES = ("high", "balanced", "fast")
 
@@ -134,6 +136,94 @@ class OidnDenoiser:
             import torch
 
             torch.cuda.synchronize(self._torch_device)
+
+
+OPTIX_VARIANT = "cuda_ad_rgb"
+
+
+def optix_unavailable_reason() -> str | None:
+    """None where Mitsuba's OptiX denoiser can run here, else why not (for the report and errors)."""
+    import mitsuba as mi
+
+    if OPTIX_VARIANT not in mi.variants():
+        return f"this Mitsuba build has no {OPTIX_VARIANT} variant"
+    if OPTIX_VARIANT not in available_variants():
+        return f"Mitsuba's {OPTIX_VARIANT} variant needs a CUDA GPU and driver, and Dr.Jit finds none here"
+    return None
+
+
+def mitsuba_sensor_normals(view_normals: np.ndarray) -> np.ndarray:
+    """admc's view-space normals (x right, y up, z toward the viewer) in Mitsuba's sensor frame
+    (x left, y up, z forward), the frame `mi.OptixDenoiser` asks for: a half turn about y."""
+    return np.ascontiguousarray(np.asarray(view_normals, dtype=np.float32) * np.float32([-1.0, 1.0, -1.0]))
+
+
+class OptixDenoiser:
+    """NVIDIA OptiX AI denoiser (HDR model, albedo + normal guides) through Mitsuba's `cuda_ad_rgb` variant.
+
+    Inputs are sanitised as for OIDN. OptiX fixes the image size when a denoiser is created, so one
+    is kept per size (created by the warm-up run, outside the timed runs). Its time includes the
+    host<->device copies, as the CUDA OIDN's does.
+    """
+    name = "optix"
+
+    def __init__(self) -> None:
+        reason = optix_unavailable_reason()
+        if reason:
+            raise RuntimeError(f"the OptiX denoiser cannot run: {reason}")
+        import drjit as dr
+        import mitsuba as mi
+
+        self._mi, self._dr = mi, dr
+        self._by_size: dict[tuple[int, int], object] = {}
+        self.last_sanitized = 0
+        self.device = f"cuda ({_gpu_name()}, OptiX via Mitsuba {mi.__version__})"
+
+    def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
+        raw = noisy_color(layers)
+        self.last_sanitized = int(np.count_nonzero(~np.isfinite(raw)))
+        for name in ("albedo", "normal"):
+            if name not in layers:
+                raise KeyError(f"OptiX needs the {name!r} layer (have {', '.join(sorted(layers))})")
+        color = _clean(raw, 0.0, np.inf)
+        albedo = _clean(layers["albedo"], 0.0, 1.0)
+        normals = mitsuba_sensor_normals(_clean(layers["normal"], -1.0, 1.0))
+        mi = self._mi
+        previous = mi.variant()
+        mi.set_variant(OPTIX_VARIANT)
+        try:
+            height, width = color.shape[:2]
+            denoiser = self._by_size.get((height, width))
+            if denoiser is None:
+                denoiser = mi.OptixDenoiser(mi.ScalarVector2u(width, height), albedo=True, normals=True)
+                self._by_size[(height, width)] = denoiser
+            out = denoiser(mi.TensorXf(color), albedo=mi.TensorXf(albedo), normals=mi.TensorXf(normals))
+            return np.array(out, dtype=np.float32)
+        finally:
+            if previous:
+                mi.set_variant(previous)
+
+    def synchronize(self) -> None:
+        self._dr.sync_thread()
+
+
+def _gpu_name() -> str:
+    """The GPU's name for the report: from torch when it sees CUDA, else from nvidia-smi."""
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            return torch.cuda.get_device_name(0)
+    except ImportError:
+        pass
+    import subprocess
+
+    try:
+        query = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                               capture_output=True, text=True, timeout=10)
+        return query.stdout.splitlines()[0].strip() if query.returncode == 0 and query.stdout else "GPU"
+    except (OSError, subprocess.TimeoutExpired):
+        return "GPU"
 
 
 def time_denoiser(denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 3,

@@ -8,7 +8,7 @@ import numpy as np
 
 from admc.pipeline import evaluate, render, report_html, tile
 from admc.pipeline.config import Config
-from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser
+from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
 from admc.pipeline.metrics import METRICS
 from admc.pipeline.scenes import SceneSpec
 from admc.pipeline.stages import render_corpus
@@ -47,8 +47,22 @@ def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]
     return images
 
 
+def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
+    """([OptiX] or [], {"optix": why it is absent}) for eval.optix = auto | on | off."""
+    if setting == "off":
+        return [], {"optix": "turned off (eval.optix = off)"}
+    reason = optix_unavailable_reason()
+    if reason is None:
+        return [OptixDenoiser()], {}
+    if setting == "on":
+        raise EvalStageError(f"eval.optix = on, but {reason}; set eval.optix = auto to run without it")
+    return [], {"optix": reason}
+
+
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:
-    """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN and `extra` denoisers."""
+    """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN, OptiX (where it
+    runs) and `extra` denoisers."""
+    optix, not_run = optix_denoisers(cfg.eval.optix)
     specs = eval_scenes(cfg)
     if not specs:
         raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "
@@ -56,10 +70,10 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(cfg, progress, specs).renders_dir
     images = evaluate.find_test_images(renders_dir, scene_ids)
-    denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *extra]
+    denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
     result = evaluate.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
-                               warmup=cfg.eval.warmup)
+                               warmup=cfg.eval.warmup, not_run=not_run)
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = report_html.write_report(
         out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
@@ -67,5 +81,6 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
         table_markdown=result.files["table1_md"].read_text().split("\n## Metric definitions")[0],
         metric_definitions={m.label: m.definition for m in METRICS},
         plots=[result.files["error_vs_time"]], images=_report_images(result), device=devices,
-        notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])
+        notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes",
+               *(f"{name} not run: {why}" for name, why in not_run.items())])
     return EvalOutcome(result, report, scene_ids)

@@ -107,6 +107,7 @@ class EvalResult:
     scenes: list[SceneImages]
     devices: dict[str, str]           # method -> device
     files: dict[str, Path]            # per_image_csv, results_json, table1_md, table1_csv, error_vs_time, equal_time
+    not_run: dict[str, str] = field(default_factory=dict)  # method -> why it is absent (e.g. no CUDA for OptiX)
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -197,8 +198,11 @@ def _save(path: Path, image: np.ndarray) -> Path:
 # ---------------------------------------------------------------------------------------------- running
 
 def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
-             repeats: int = 3, warmup: int = 1) -> EvalResult:
-    """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and files."""
+             repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None) -> EvalResult:
+    """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and files.
+
+    `not_run` names methods the caller left out and why; the tables state it so a reader of the
+    report does not mistake a missing column for a forgotten one."""
     _check_denoisers(denoisers)
     grouped = _by_scene(images)
     out_dir = Path(out_dir)
@@ -227,7 +231,7 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
             scenes.append(scene)
     devices = {d.name: d.device for d in denoisers}
     table = aggregate(records, devices)
-    result = EvalResult(table, records, path_tracer, scenes, devices, {})
+    result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}))
     result.files = _write_outputs(result, out_dir, repeats, warmup)
     return result
 
@@ -369,6 +373,8 @@ def _table_md(result: EvalResult, out_dir: Path) -> Path:
     lines += ["", f"Images per spp: {counts}. Best average and highest B.P. in bold.", "",
               "**B.P.** " + BEST_PERCENT_RULE + " Shown rounded to 2 decimals.", "",
               "**Devices:** " + "; ".join(f"{name}: {dev}" for name, dev in result.devices.items()), "",
+              *(["**Not run:** " + "; ".join(f"{name}: {why}" for name, why in result.not_run.items()), ""]
+                if result.not_run else []),
               "**Non-finite values** " + NONFINITE_RULE + " " + _nonfinite_summary(result), "",
               "## Metric definitions", ""]
     for m in METRICS:
@@ -469,6 +475,7 @@ def _write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int)
         "best_percent_rule": BEST_PERCENT_RULE,
         "timing": {"repeats": repeats, "warmup": warmup, "rule": TIMING_RULE.format(repeats=repeats, warmup=warmup)},
         "devices": result.devices,
+        "not_run": result.not_run,
         "host": cpu_description(),
         "table": [asdict(row) for row in result.table],
         "images": [_record_dict(r, out_dir) for r in result.records],

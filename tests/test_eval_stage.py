@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from admc.pipeline.config import load_config
+from admc.pipeline.denoisers import optix_unavailable_reason
 from admc.pipeline.eval_stage import EvalStageError, eval_scenes, run_eval
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
@@ -25,9 +26,29 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
         assert files[name].is_file() and files[name].stat().st_size > 0, name
     results = json.loads(files["results_json"].read_text())
     methods = {row["method"] for row in results["table"]}
-    assert methods == {"noisy", "oidn"}
     html = outcome.report.read_text()
     assert outcome.report.name == "index.html" and "oidn" in html and "data:image/png;base64," in html
+    why_no_optix = optix_unavailable_reason()
+    if why_no_optix is None:  # a CUDA machine: OptiX is in every table
+        assert methods == {"noisy", "oidn", "optix"} and results["not_run"] == {}
+    else:  # it is absent, and every output says why
+        assert methods == {"noisy", "oidn"} and results["not_run"] == {"optix": why_no_optix}
+        assert f"**Not run:** optix: {why_no_optix}" in files["table1_md"].read_text()
+        assert "optix not run: " in html
+
+
+@pytest.mark.skipif(optix_unavailable_reason() is None, reason="this machine runs OptiX")
+def test_eval_optix_on_without_cuda_is_a_clear_error_before_rendering(tmp_path, variant):
+    cfg = load_config(None, overrides(tmp_path) + ["eval.optix='on'"])
+    with pytest.raises(EvalStageError, match=r"eval.optix = on, but .*CUDA.*set eval.optix = auto"):
+        run_eval(cfg, progress=False)
+    assert not (tmp_path / "renders").exists(), "the error must come before any render work"
+
+
+def test_eval_optix_off_is_stated(tmp_path, variant):
+    outcome = run_eval(load_config(None, overrides(tmp_path) + ["eval.optix='off'"]), progress=False)
+    assert outcome.result.not_run == {"optix": "turned off (eval.optix = off)"}
+    assert {row.method for row in outcome.result.table} == {"noisy", "oidn"}
 
 
 def test_empty_test_split_is_a_clear_error(tmp_path, variant):
@@ -40,3 +61,5 @@ def test_cli_eval_prints_table_and_report_path(tmp_path, variant):
     out = subprocess.run([ADMC, "eval", "--no-model", *args], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert "oidn" in out.stdout and "HTML report:" in out.stdout
+    header = next(line for line in out.stdout.splitlines() if line.startswith("| spp | Denoiser |"))
+    assert header.endswith("relMSE ↓ B.P. |"), "off a terminal the Markdown table must not be wrapped"
