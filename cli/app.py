@@ -16,8 +16,8 @@ from admc.pipeline import config as config_mod
 
 app = typer.Typer(help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
-console = Console()
-err = Console(stderr=True)
+console = Console(soft_wrap=True)  # long paths and Markdown rows stay whole lines in logs and pipes
+err = Console(stderr=True, soft_wrap=True)
 
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", "-c", help="TOML config overlaying configs/default.toml.")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", "-s", help="Override a value: section.key=value (repeatable).")]
@@ -194,15 +194,17 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             tile: Annotated[int, typer.Option(help="Tile size in pixels (bounds memory; results are the same).")] = 512,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
-    from admc.pipeline.denoise_io import load_denoise_input, write_denoised
+    from admc.pipeline.denoise_io import check_output_path, load_denoise_input, write_denoised
 
     if output is not None and len(inputs) > 1:
         raise typer.BadParameter("--output names one file; give one input, or leave it out")
-    model = _denoiser(_load(config, set_), weights, device, tile)
+    cfg, model = _load(config, set_), None
     for path in inputs:
         source = load_denoise_input(path)
-        result = model(source.layers)
         target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
+        check_output_path(target, source)
+        model = model or _denoiser(cfg, weights, device, tile)  # after the first input checks out
+        result = model(source.layers)
         write_denoised(target, result, source=source)
         for note in source.notes + result.notes:
             console.print(f"  {note}", markup=False)
@@ -214,14 +216,16 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 @_user_errors
 def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
           weights: WeightsOpt = None, device: DeviceOpt = "auto",
-          no_model: Annotated[bool, typer.Option("--no-model", help="Only the noisy input and OIDN.")] = False) -> None:
-    """Table 1 on the test split's full images (noisy input, OIDN, this model), error vs time, an HTML page."""
+          no_model: Annotated[bool, typer.Option("--no-model", help="Leave this model out (noisy input, OIDN, "
+                                                 "and OptiX where CUDA runs).")] = False) -> None:
+    """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
+    time, an HTML page."""
     from admc.pipeline.eval_stage import run_eval
 
     cfg = _load(config, set_, scheduler)
     extra = [] if no_model else [_denoiser(cfg, weights, device, tile=512)]
     outcome = run_eval(cfg, extra=extra)
-    console.print(outcome.result.files["table1_md"].read_text(), markup=False, highlight=False, soft_wrap=True)
+    console.print(outcome.result.files["table1_md"].read_text(), markup=False, highlight=False)
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")
     console.print(f"HTML report: {outcome.report}")
     console.print(f"tables and plots: {outcome.report.parent}")

@@ -157,14 +157,20 @@ def _complete_depth(result: DenoiseInput, where: str) -> None:
     result.layers.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
 
 
-def write_denoised(path: Path, result: DenoiseResult, *, source: DenoiseInput, layers: bool = True) -> None:
-    """EXR (float32) with the final image as plain R, G, B and, if `layers`, the `diffuse.*` and
-    `specular.*` parts; written atomically. Refuses to overwrite any file of `source`."""
+def check_output_path(path: Path, source: DenoiseInput) -> None:
+    """Refuse an output that is not an .exr or would overwrite an input, before any work is spent."""
     path = Path(path)
     if path.suffix.lower() != ".exr":
         raise DenoiseInputError(f"{path}: the output must be an .exr file")
     if path.resolve() in source.paths:
         raise DenoiseInputError(f"{path}: is one of the input files; choose another output name")
+
+
+def write_denoised(path: Path, result: DenoiseResult, *, source: DenoiseInput, layers: bool = True) -> None:
+    """EXR (float32) with the final image as plain R, G, B and, if `layers`, the `diffuse.*` and
+    `specular.*` parts; written atomically. Refuses to overwrite any file of `source`."""
+    path = Path(path)
+    check_output_path(path, source)
     planes = {BEAUTY: result.image}
     if layers:
         planes.update({name: part for name, part in (("diffuse", result.diffuse), ("specular", result.specular))

@@ -2,6 +2,7 @@
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ADMC = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "admc-pipe")
@@ -25,10 +26,26 @@ def test_every_command_has_help(command):
     assert out.returncode == 0 and "Usage" in out.stdout
 
 
-def test_denoise_needs_an_input_and_names_a_missing_file(tmp_path):
+def _oidn_style_input(folder: Path) -> Path:
+    from admc.stores.exr import write_exr
+
+    rng = np.random.default_rng(0)
+    for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", -1.0)):
+        write_exr(folder / f"frame.{role}.exr", {"": rng.uniform(lo, 1.0, (8, 8, 3)).astype(np.float32)})
+    return folder / "frame.hdr.exr"
+
+
+def test_denoise_checks_its_input_and_output_before_loading_weights(tmp_path):
     assert run("denoise").returncode == 2
     out = run("denoise", str(tmp_path / "missing.exr"), "--weights", str(tmp_path / "w.pt"))
+    assert out.returncode == 2 and "missing.exr" in out.stderr and "Traceback" not in out.stderr
+    assert "weights:" not in out.stdout, "a missing input is reported before any model is loaded"
+    frame = _oidn_style_input(tmp_path)
+    out = run("denoise", str(frame), "-o", str(tmp_path / "out.png"), "--weights", str(tmp_path / "w.pt"))
+    assert out.returncode == 2 and "out.png: the output must be an .exr file" in out.stderr
+    out = run("denoise", str(frame), "--weights", str(tmp_path / "w.pt"))
     assert out.returncode == 2 and "w.pt" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "frame.denoised.exr").exists()
 
 
 def test_wrong_option_is_rejected():
