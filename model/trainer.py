@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import random
+import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -241,7 +242,10 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     metrics = MetricsLog(out_dir, resume_step=start if resume else None)
     averages, last_losses, validation = _Averages(), {}, {}
     last_saved = start if resume else None
-    bar = tqdm(total=settings.steps, initial=start, disable=not progress, desc=stage, dynamic_ncols=True)
+    # A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
+    # so there the logged averages go out as one plain line every log_every steps instead.
+    live = progress and sys.stderr.isatty()
+    bar = tqdm(total=settings.steps, initial=start, disable=not live, desc=stage, dynamic_ncols=True)
     window_start, window_patches = time.perf_counter(), 0
     try:
         for step in range(start, settings.steps):
@@ -273,6 +277,9 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
                 values["phase"] = ("l1", "critic", "adversarial").index(settings.phase(step))
                 metrics.log(done, values)
                 bar.set_postfix(_postfix(values), refresh=False)
+                if progress and not live:
+                    line = " ".join(f"{k}={v}" for k, v in _postfix(values).items())
+                    print(f"{stage} step {done}/{settings.steps}: {line}", file=sys.stderr, flush=True)
                 window_start, window_patches = time.perf_counter(), 0
             if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
                 for b, rows in val.items():

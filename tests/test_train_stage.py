@@ -46,6 +46,11 @@ def test_pretrain_writes_checkpoint_weights_and_logs(pretrained):
     assert "diffuse" in weights["branches"] and "checkpoint:" in out.stdout
     assert (run / "metrics.csv").read_text().count("\n") > 4
     assert any((run / "tensorboard").rglob("events.out.tfevents.*"))
+    # off a terminal: one plain progress line per logged step (log_every=1), no bar redraws
+    steps = [line for line in out.stderr.splitlines() if line.startswith("pretrain step ")]
+    assert [line.split(":")[0] for line in steps] == [f"pretrain step {i}/4" for i in range(1, 5)]
+    assert "d.l1=" in steps[0] and "p/s=" in steps[0]
+    assert "\r" not in out.stderr + out.stdout
 
 
 def test_rerun_is_a_no_op_and_more_steps_resume(pretrained):
