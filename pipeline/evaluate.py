@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter, NullLocator
+from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, NullFormatter, NullLocator
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from admc.pipeline.denoisers import Denoiser, cpu_description, noisy_color, time_denoiser
+from admc.pipeline.denoisers import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
 from admc.pipeline.metrics import METRICS, NONFINITE_RULE, count_nonfinite, score
 from admc.stores.atomic import publishing, write_json
 from admc.stores.exr import exr_layers, read_exr
@@ -54,6 +54,8 @@ class TestImage:
     noisy_path: Path
     reference_path: Path
     render_seconds: float
+    reference_spp: int = 0                 # 0: unknown
+    reference_seconds: float = math.nan    # the reference's own render time: the raw curve's far end
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,7 @@ class EvalResult:
     devices: dict[str, str]           # method -> device
     files: dict[str, Path]            # per_image_csv, results_json, table1_md, table1_csv, error_vs_time, equal_time
     not_run: dict[str, str] = field(default_factory=dict)  # method -> why it is absent (e.g. no CUDA for OptiX)
+    reference_cost: dict | None = None  # {"spp": [...], "seconds": mean over scenes} when every sidecar has it
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -146,14 +149,14 @@ def find_test_images(renders_dir: Path, scene_ids: list[str] | None = None) -> l
         reference = folder / "reference.exr"
         if not reference.is_file():
             raise EvalError(f"{folder}: reference.exr missing (or a dangling link): render the scene again")
-        _sidecar(folder / "reference.json", folder.name, reference=True)
+        ref_side = _sidecar(folder / "reference.json", folder.name, reference=True)
         noisy = sorted(folder.glob("spp*.exr"))
         if not noisy:
             raise EvalError(f"{folder}: no noisy renders (spp*.exr)")
         for path in noisy:
             side = _sidecar(path.with_suffix(".json"), folder.name, reference=False)
-            images.append(TestImage(folder.name, int(side["spp"]), path, reference,
-                                    float(side["render_seconds"])))
+            images.append(TestImage(folder.name, int(side["spp"]), path, reference, float(side["render_seconds"]),
+                                    int(ref_side.get("spp", 0)), float(ref_side["render_seconds"])))
     return sorted(images, key=lambda t: (t.scene_id, t.spp))
 
 
@@ -231,9 +234,19 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
             scenes.append(scene)
     devices = {d.name: d.device for d in denoisers}
     table = aggregate(records, devices)
-    result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}))
+    result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}),
+                        _reference_cost(images))
     result.files = _write_outputs(result, out_dir, repeats, warmup)
     return result
+
+
+def _reference_cost(images: list[TestImage]) -> dict | None:
+    """Mean render time of the scenes' references, the far end of the raw path tracer's curve."""
+    per_scene = {t.scene_id: t for t in images}
+    if not per_scene or any(not math.isfinite(t.reference_seconds) for t in per_scene.values()):
+        return None
+    return {"spp": sorted({t.reference_spp for t in per_scene.values()}),
+            "seconds": float(np.mean([t.reference_seconds for t in per_scene.values()]))}
 
 
 def _record(test: TestImage, method: str, device: str, image: np.ndarray, reference: np.ndarray,
@@ -392,12 +405,14 @@ def _nonfinite_summary(result: EvalResult) -> str:
 
 
 def _readable_log_ticks(axis, values: list[float]) -> None:
-    """Plain-number tick labels; under one decade of data, five ticks spread over the data instead of
-    matplotlib's minor-tick labels (which overlap there)."""
+    """Plain-number tick labels a reader can interpolate: under one decade of data, five ticks spread
+    over the data; up to three decades, 1-2-5 steps; beyond, matplotlib's decades."""
     positive = [v for v in values if v > 0]
     if positive and max(positive) < 10 * min(positive):
         axis.set_major_locator(FixedLocator(np.geomspace(min(positive), max(positive), 5)))
         axis.set_minor_locator(NullLocator())
+    elif positive and max(positive) < 1000 * min(positive):
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
     axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     axis.set_minor_formatter(NullFormatter())
 
@@ -406,7 +421,7 @@ def _plot(result: EvalResult, out_dir: Path) -> Path:
     fig = Figure(figsize=(6.4, 4.8))
     ax = fig.add_subplot()
     curves = {PATH_TRACER: _mean_curve(result.path_tracer)}
-    for method in result.devices:
+    for method in _denoising_methods(result):
         curves[method] = _mean_curve([r for r in result.records if r.method == method])
     for method, curve in curves.items():
         xs, ys = zip(*curve.values())
@@ -417,7 +432,13 @@ def _plot(result: EvalResult, out_dir: Path) -> Path:
     ax.set_xscale("log")
     ax.set_yscale("log")
     points = [point for curve in curves.values() for point in curve.values()]
-    for axis, values in ((ax.xaxis, [p[0] for p in points]), (ax.yaxis, [p[1] for p in points])):
+    xs = [p[0] for p in points]
+    if result.reference_cost:  # its error is 0 by definition, so it is a cost line, not a point
+        seconds = result.reference_cost["seconds"]
+        spp = "/".join(str(s) for s in result.reference_cost["spp"])
+        ax.axvline(seconds, color="gray", linestyle=":", label=f"reference render ({spp} spp)")
+        xs.append(seconds)
+    for axis, values in ((ax.xaxis, xs), (ax.yaxis, [p[1] for p in points])):
         _readable_log_ticks(axis, values)
     ax.set_xlabel("seconds (render + denoise), mean over scenes")
     ax.set_ylabel("relMSE, mean over scenes")
@@ -431,12 +452,17 @@ def _plot(result: EvalResult, out_dir: Path) -> Path:
     return path
 
 
+def _denoising_methods(result: EvalResult) -> list[str]:
+    """Methods that change the image: the noisy-input row is the path tracer's own curve already."""
+    return [m for m in result.devices if m != NoisyInput.name]
+
+
 def equal_time(result: EvalResult) -> list[dict]:
     """Per denoiser and spp: the raw path tracer spp of nearest mean cost (log scale) and who wins on relMSE."""
     raw = _mean_curve(result.path_tracer)
     raw_by_scene = {(r.scene_id, r.spp): r.relmse for r in result.path_tracer}
     rows = []
-    for method in result.devices:
+    for method in _denoising_methods(result):
         mine = [r for r in result.records if r.method == method]
         for spp, (cost, err) in _mean_curve(mine).items():
             raw_spp = min(raw, key=lambda s: abs(math.log(max(raw[s][0], 1e-12) / max(cost, 1e-12))))
@@ -448,12 +474,14 @@ def equal_time(result: EvalResult) -> list[dict]:
     return rows
 
 
-def _equal_time_md(rows: list[dict], out_dir: Path) -> Path:
+def _equal_time_md(rows: list[dict], reference_cost: dict | None, out_dir: Path) -> Path:
     lines = ["# Equal time: denoised against the raw path tracer", "",
              "For each denoiser and input spp, the raw path tracer's spp whose mean cost is nearest "
              "(on a log scale) to the denoiser's mean cost (render + denoise), and whether the denoised "
              "image has the lower mean relMSE. Scenes won: scenes where the denoised image beats that "
              "raw render of the same scene.", "",
+             *([f"The references ({'/'.join(map(str, reference_cost['spp']))} spp, relMSE 0 by definition) "
+                f"took {reference_cost['seconds']:.4g} s per scene on average.", ""] if reference_cost else []),
              "| denoiser | spp | seconds | relMSE | raw spp | raw seconds | raw relMSE | beats raw | scenes won |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -467,7 +495,7 @@ def _write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int)
     equal = equal_time(result)
     files = {"per_image_csv": _write_per_image_csv(result, out_dir), "table1_csv": _table_csv(result, out_dir),
              "table1_md": _table_md(result, out_dir), "error_vs_time": _plot(result, out_dir),
-             "equal_time": _equal_time_md(equal, out_dir), "results_json": out_dir / "results.json"}
+             "equal_time": _equal_time_md(equal, result.reference_cost, out_dir), "results_json": out_dir / "results.json"}
     write_json(files["results_json"], {
         "metrics": {m.key: {"label": m.label, "lower_is_better": m.lower_is_better, "definition": m.definition}
                     for m in METRICS},
@@ -481,6 +509,7 @@ def _write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int)
         "images": [_record_dict(r, out_dir) for r in result.records],
         "path_tracer": [_record_dict(r, out_dir) for r in result.path_tracer],
         "equal_time": equal,
+        "reference_cost": result.reference_cost,
         "scenes": [{"scene_id": s.scene_id, "reference": str(s.reference.relative_to(out_dir)),
                     "inputs": {str(k): str(v.relative_to(out_dir)) for k, v in s.inputs.items()},
                     "outputs": {str(k): {m: str(p.relative_to(out_dir)) for m, p in v.items()}

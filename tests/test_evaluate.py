@@ -50,6 +50,8 @@ def test_find_test_images_reads_folders_and_sidecars(renders):
         side = json.loads(t.noisy_path.with_suffix(".json").read_text())
         assert t.render_seconds == side["render_seconds"] > 0
         assert t.reference_path.name == "reference.exr"
+        reference_side = json.loads(t.reference_path.with_suffix(".json").read_text())
+        assert (t.reference_spp, t.reference_seconds) == (64, reference_side["render_seconds"])
     one = images[0].scene_id
     assert {t.scene_id for t in find_test_images(renders, [one])} == {one}
 
@@ -84,13 +86,24 @@ def test_writes_every_output(evaluated):
     assert doc["timing"]["repeats"] == 1 and len(doc["images"]) == 8 and len(doc["path_tracer"]) == 4
     md = (out / "table1.md").read_text()
     assert "B.P." in md and "rtol" in md and "cpu (" in md and "(ref^2 + 0.01)" in md
-    assert {row["method"] for row in doc["equal_time"]} == {"noisy", "oidn"}
-    assert (out / "equal_time.md").read_text().count("\n| oidn |") == 2
+    # the noisy-input row is the raw path tracer itself, so equal time compares only denoisers to it
+    assert {row["method"] for row in doc["equal_time"]} == {"oidn"}
+    equal_md = (out / "equal_time.md").read_text()
+    assert equal_md.count("\n| oidn |") == 2 and "\n| noisy |" not in equal_md
     per_image = _read_table(out / "per_image.csv")
     assert len(per_image) == 12 and {r["method"] for r in per_image} == {"path tracer", "noisy", "oidn"}
     for scene in result.scenes:
         assert np.load(scene.reference).shape == (32, 32, 3)
         assert set(scene.inputs) == {2, 4} and set(scene.outputs[2]) == {"noisy", "oidn"}
+
+
+def test_reference_render_time_ends_the_raw_curve(renders, evaluated):
+    result, out = evaluated
+    sidecars = [json.loads((folder / "reference.json").read_text()) for folder in sorted(renders.iterdir())]
+    expected = float(np.mean([side["render_seconds"] for side in sidecars]))
+    assert result.reference_cost == {"spp": [64], "seconds": pytest.approx(expected)}
+    assert json.loads((out / "results.json").read_text())["reference_cost"]["seconds"] == pytest.approx(expected)
+    assert f"The references (64 spp, relMSE 0 by definition) took {expected:.4g} s" in (out / "equal_time.md").read_text()
 
 
 def test_best_percent_columns_sum_to_100(evaluated):
