@@ -174,14 +174,33 @@ WeightsOpt = Annotated[Optional[Path], typer.Option(
 DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 
-def _denoiser(cfg, weights: Optional[Path], device: str, tile: int):
+def _denoiser(cfg, weights: Optional[Path], device: str, tile: int, name: str = "admc"):
     from admc.model.denoiser import load_denoiser
     from admc.model.trainer import resolve_device
     from admc.pipeline.train_stage import default_weights
 
     path = weights or default_weights(cfg)
-    console.print(f"weights: {path}")
-    return load_denoiser(path, device=resolve_device(device), tile=tile)
+    console.print(f"weights{'' if name == 'admc' else ' ' + name}: {path}")
+    return load_denoiser(path, device=resolve_device(device), tile=tile, name=name)
+
+
+def _named_weights(specs: list[str]) -> list[tuple[str, Path]]:
+    """[(column name, path)] from --weights values PATH or NAME=PATH. One unnamed file is "admc"; several
+    are "admc-<run>" after their run folder (or file stem), so ablations sit side by side in Table 1."""
+    named = []
+    for spec in specs:
+        name, sep, rest = spec.partition("=")
+        if sep and not Path(spec).exists():
+            named.append((name, Path(rest)))
+        else:
+            path = Path(spec)
+            label = path.parent.name if path.stem in ("weights-fp16", "checkpoint") else path.stem
+            named.append((None if len(specs) == 1 else f"admc-{label}", path))
+    named = [(name or "admc", path) for name, path in named]
+    names = [name for name, _ in named]
+    if len(set(names)) != len(names):
+        raise typer.BadParameter(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
+    return named
 
 
 @app.command()
@@ -215,7 +234,10 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 @app.command("eval")
 @_user_errors
 def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
-          weights: WeightsOpt = None, device: DeviceOpt = "auto",
+          weights: Annotated[Optional[list[str]], typer.Option(
+              help="Weights or checkpoint: PATH or NAME=PATH, repeatable to compare checkpoints or ablations in "
+                   "one table (default: this config's finetune, else pretrain run, else the shipped weights).")] = None,
+          device: DeviceOpt = "auto",
           no_model: Annotated[bool, typer.Option("--no-model", help="Leave this model out (noisy input, OIDN, "
                                                  "and OptiX where CUDA runs).")] = False) -> None:
     """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
@@ -223,7 +245,10 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     from admc.pipeline.eval_stage import run_eval
 
     cfg = _load(config, set_, scheduler)
-    extra = [] if no_model else [_denoiser(cfg, weights, device, tile=512)]
+    if no_model and weights:
+        raise typer.BadParameter("--no-model and --weights contradict each other; give one")
+    named = _named_weights(weights) if weights else [("admc", None)]
+    extra = [] if no_model else [_denoiser(cfg, path, device, tile=512, name=name) for name, path in named]
     outcome = run_eval(cfg, extra=extra)
     console.print(outcome.result.files["table1_md"].read_text(), markup=False, highlight=False)
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")

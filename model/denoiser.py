@@ -145,15 +145,14 @@ class FullImageDenoiser:
     receptive radius of the two generators, and a smaller one is refused (tiles would then differ
     from the untiled image: seams). `dtype`: None = bfloat16 autocast on CUDA, float32 on CPU.
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
-    image then pays the compile time).
+    image then pays the compile time). `name` is its column in the evaluation tables, `source` the
+    weights file it came from (reported next to the tables).
     Implements pipeline.denoisers.Denoiser (name, device, denoise, synchronize).
     """
 
-    name = "admc"
-
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
                  tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
-                 compile: bool = False) -> None:
+                 compile: bool = False, name: str = "admc", source: str | None = None) -> None:
         if tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         self.torch_device = torch.device(device)
@@ -177,6 +176,7 @@ class FullImageDenoiser:
         self.tile = tile
         self.overlap = overlap
         self.device = _device_description(self.torch_device)
+        self.name, self.source = name, source
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         generator = generator.to(self.torch_device).eval()
@@ -266,7 +266,7 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
 
 
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
-                  compile: bool = False) -> FullImageDenoiser:
+                  compile: bool = False, name: str = "admc") -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise.
 
     Refuses weights trained on other transforms than this code applies (their outputs would be
@@ -290,4 +290,4 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
         generator.load_state_dict({k: v.float() for k, v in state["generator"].items()})
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
-                             compile=compile)
+                             compile=compile, name=name, source=str(path))

@@ -25,6 +25,7 @@ OIDN_QUALITIES = ("high", "balanced", "fast")
 class Denoiser(Protocol):
     name: str      # column name in the tables, e.g. "noisy", "oidn", "admc"
     device: str    # what computes it, e.g. "cpu (AMD EPYC 9R14, 2 threads)", "cuda:0 (NVIDIA H100)"
+    # optional: `source`, the weights file a learned denoiser came from (reported with the tables)
 
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
         """(H, W, 3) float32 linear HDR radiance from the render layers of one noisy image."""

@@ -111,6 +111,7 @@ class EvalResult:
     files: dict[str, Path]            # per_image_csv, results_json, table1_md, table1_csv, error_vs_time, equal_time
     not_run: dict[str, str] = field(default_factory=dict)  # method -> why it is absent (e.g. no CUDA for OptiX)
     reference_cost: dict | None = None  # {"spp": [...], "seconds": mean over scenes} when every sidecar has it
+    sources: dict[str, str] = field(default_factory=dict)  # method -> weights file, for learned denoisers
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -234,8 +235,9 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
             scenes.append(scene)
     devices = {d.name: d.device for d in denoisers}
     table = aggregate(records, devices)
+    sources = {d.name: d.source for d in denoisers if getattr(d, "source", None)}
     result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}),
-                        _reference_cost(images))
+                        _reference_cost(images), sources)
     result.files = _write_outputs(result, out_dir, repeats, warmup)
     return result
 
@@ -386,6 +388,8 @@ def _table_md(result: EvalResult, out_dir: Path) -> Path:
     lines += ["", f"Images per spp: {counts}. Best average and highest B.P. in bold.", "",
               "**B.P.** " + BEST_PERCENT_RULE + " Shown rounded to 2 decimals.", "",
               "**Devices:** " + "; ".join(f"{name}: {dev}" for name, dev in result.devices.items()), "",
+              *(["**Weights:** " + "; ".join(f"{name}: {path}" for name, path in result.sources.items()), ""]
+                if result.sources else []),
               *(["**Not run:** " + "; ".join(f"{name}: {why}" for name, why in result.not_run.items()), ""]
                 if result.not_run else []),
               "**Non-finite values** " + NONFINITE_RULE + " " + _nonfinite_summary(result), "",
@@ -504,6 +508,7 @@ def _write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int)
         "timing": {"repeats": repeats, "warmup": warmup, "rule": TIMING_RULE.format(repeats=repeats, warmup=warmup)},
         "devices": result.devices,
         "not_run": result.not_run,
+        "weights": result.sources,
         "host": cpu_description(),
         "table": [asdict(row) for row in result.table],
         "images": [_record_dict(r, out_dir) for r in result.records],

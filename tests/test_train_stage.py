@@ -1,4 +1,5 @@
 """`admc-pipe train` as a user runs it: pretrain on a tiny corpus, resume, then fine-tune from its weights."""
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -106,6 +107,28 @@ def test_eval_includes_the_trained_model(pretrained):
     assert out.returncode == 0, out.stderr
     table = (workdir / "eval" / "table1.csv").read_text()
     assert {"noisy", "oidn", "admc"} <= {line.split(",")[1] for line in table.splitlines()[1:]}
+    assert f"**Weights:** admc: {weights}" in (workdir / "eval" / "table1.md").read_text()
+
+
+def test_eval_compares_several_checkpoints_in_one_table(pretrained):
+    workdir, _ = pretrained
+    run = workdir / "train" / "pretrain"
+    common = flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1", "eval.warmup=0", "eval.optix='off'"])
+    out = cli("eval", "--weights", str(run / "weights-fp16.pt"), "--weights", f"last={run / 'checkpoint.pt'}",
+              "--set", "eval.out_dir='eval-two'", *common)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads((workdir / "eval-two" / "results.json").read_text())
+    assert {row["method"] for row in doc["table"]} == {"noisy", "oidn", "admc-pretrain", "last"}
+    assert doc["weights"] == {"admc-pretrain": str(run / "weights-fp16.pt"), "last": str(run / "checkpoint.pt")}
+    # both files hold the run's final networks (fp16 export vs fp32 checkpoint): scores agree closely
+    scores = {(r["scene_id"], r["spp"], r["method"]): r["relmse"] for r in doc["images"]}
+    for scene, spp, method in scores:
+        if method == "last":
+            assert scores[(scene, spp, "last")] == pytest.approx(scores[(scene, spp, "admc-pretrain")], rel=0.05)
+    clash = cli("eval", "--weights", str(run / "weights-fp16.pt"), "--weights", str(run / "checkpoint.pt"), *common)
+    assert clash.returncode == 2 and "name them apart with NAME=PATH" in clash.stderr
+    both = cli("eval", "--no-model", "--weights", str(run / "checkpoint.pt"), *common)
+    assert both.returncode == 2 and "contradict" in both.stderr
 
 
 def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
