@@ -1,8 +1,10 @@
 """Print the full-image denoiser's time per image: both branches, random weights (speed does not
-depend on them), paper and small generator configs.
+depend on them), paper and small generator configs; and, on the same image and device, the
+baselines the evaluation compares against (Intel OIDN; NVIDIA OptiX where Mitsuba's CUDA variant runs).
 
     .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small]
-        [--device cpu|cuda] [--tile 0] [--repeats 3] [--warmup 1] [--threads N] [--compile]
+        [--baselines oidn optix] [--device cpu|cuda] [--tile 0] [--repeats 3] [--warmup 1]
+        [--threads N] [--compile]
 
 Each timed run is one FullImageDenoiser call; "network" is the generators' share (synchronised:
 on CUDA it ends with the copy back to the host), "total" adds sanitising and the NumPy transforms.
@@ -20,6 +22,7 @@ import torch
 
 from admc.model.denoiser import FullImageDenoiser, receptive_radius
 from admc.model.generator import Generator, GeneratorConfig
+from admc.pipeline.denoisers import OidnDenoiser, OptixDenoiser, optix_unavailable_reason, time_denoiser
 
 CONFIGS = {
     "paper": GeneratorConfig(),
@@ -56,10 +59,27 @@ def bench(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) ->
           f"total {total:9.1f} ms/image  [{', '.join(runs[0].branches)}]", flush=True)
 
 
+def bench_baseline(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) -> None:
+    """The evaluation's own baselines, timed the way the evaluation times them (time_denoiser)."""
+    height, width = layers["diffuse"].shape[:2]
+    if name == "optix":
+        reason = optix_unavailable_reason()
+        if reason:
+            print(f"optix  {width}x{height}: not run: {reason}", flush=True)
+            return
+        denoiser = OptixDenoiser()
+    else:
+        denoiser = OidnDenoiser(quality="high", device=args.device)
+    _, seconds = time_denoiser(denoiser, layers, repeats=args.repeats, warmup=args.warmup)
+    print(f"{name:6s} {width}x{height}: total {seconds * 1e3:9.1f} ms/image  [{denoiser.device}]", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
+                        help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--tile", type=int, default=0, help="largest tile core edge; 0: no tiling")
     parser.add_argument("--repeats", type=int, default=3)
@@ -78,6 +98,8 @@ def main() -> None:
     layers = synthetic_layers(height, width)
     for name in args.configs:
         bench(name, layers, args)
+    for name in args.baselines:
+        bench_baseline(name, layers, args)
 
 
 if __name__ == "__main__":
