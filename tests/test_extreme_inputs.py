@@ -94,3 +94,22 @@ def test_eval_on_extreme_cases_gives_finite_metrics_and_complete_tables(model, t
         assert all(np.isfinite(v) for v in row["average"].values())
     poisoned = [r for r in result.records if r.scene_id == "poisoned" and r.method == "noisy"]
     assert poisoned[0].nonfinite > 0, "the noisy input's NaN/Inf are counted in the records"
+
+
+def test_real_one_spp_renders_through_eval(model, variant, tmp_path):
+    """1 spp from the real integrator (the stiffest input a user can render), not a synthetic stand-in."""
+    from admc.pipeline.config import load_config
+    from admc.pipeline.evaluate import find_test_images
+    from admc.pipeline.stages import render_corpus
+
+    cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
+                             "render.spp=[1]", "render.reference_spp=64", "corpus.n_scenes=2"])
+    images = find_test_images(render_corpus(cfg, progress=False).renders_dir)
+    assert {t.spp for t in images} == {1}
+    result = evaluate(images, [NoisyInput(), OidnDenoiser(), model], tmp_path / "eval", progress=False,
+                      repeats=1, warmup=0)
+    for record in result.records:
+        assert np.isfinite([record.relmse, record.psnr, record.one_minus_ssim]).all(), record
+        assert record.nonfinite == 0 and np.isfinite(np.load(record.image)).all(), record
+    row = {r.method: r for r in result.table}
+    assert row["oidn"].average["relmse"] < row["noisy"].average["relmse"]
