@@ -77,8 +77,9 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = report_html.write_report(
         out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
-        # the page prints the metric definitions in its header, so the table's own copy is left out
-        table_markdown=result.files["table1_md"].read_text().split("\n## Metric definitions")[0],
+        # the page has its own "Table 1" heading and prints the metric definitions in its header,
+        # so the Markdown file's title line and its copy of the definitions are left out
+        table_markdown=result.files["table1_md"].read_text().split("\n## Metric definitions")[0].split("\n", 1)[1],
         metric_definitions={m.label: m.definition for m in METRICS},
         plots=[result.files["error_vs_time"]], images=_report_images(result), device=devices,
         notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])

@@ -29,6 +29,7 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
     methods = {row["method"] for row in results["table"]}
     html = outcome.report.read_text()
     assert outcome.report.name == "index.html" and "oidn" in html and "data:image/png;base64," in html
+    assert html.count("Table 1") == 1, "one heading for the table (the Markdown title line is left out)"
     why_no_optix = optix_unavailable_reason()
     if why_no_optix is None:  # a CUDA machine: OptiX is in every table
         assert methods == {"noisy", "oidn", "optix"} and results["not_run"] == {}
