@@ -31,9 +31,12 @@ class CorpusConfig:
     n_scenes: int
     seed: int
     xml_dirs: tuple[str, ...]
+    xml_resolution: str
 
     def check(self) -> None:
         _require(self.n_scenes >= 0, "corpus.n_scenes", f"must be >= 0, got {self.n_scenes}")
+        _require(self.xml_resolution in ("render", "film"), "corpus.xml_resolution",
+                 f"must be render or film, got {self.xml_resolution!r}")
         _require(self.n_scenes == 0 or len(self.families) > 0, "corpus.families", "empty but n_scenes > 0")
 
 

@@ -100,7 +100,8 @@ def corpus(cfg: Config) -> list[SceneSpec]:
     specs = scenes.procedural_corpus(list(cfg.corpus.families), cfg.corpus.n_scenes, cfg.corpus.seed,
                                      cfg.render.resolution)
     if cfg.corpus.xml_dirs:
-        specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), cfg.render.resolution)
+        own_film = cfg.corpus.xml_resolution == "film"
+        specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), None if own_film else cfg.render.resolution)
     return specs
 
 

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from admc.pipeline.config import load_config
@@ -65,3 +66,21 @@ def test_cli_eval_prints_table_and_report_path(tmp_path, variant):
     assert "oidn" in out.stdout and "HTML report:" in out.stdout
     header = next(line for line in out.stdout.splitlines() if line.startswith("| spp | Denoiser |"))
     assert header.endswith("relMSE ↓ B.P. |"), "off a terminal the Markdown table must not be wrapped"
+
+
+def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
+    """The README's recipe: a folder of the user's scenes as the whole test set, at each file's film size."""
+    from test_scenes import QUAD_OBJ, SCENE_XML
+
+    scenes = tmp_path / "my_scenes"
+    (scenes / "meshes").mkdir(parents=True)
+    (scenes / "meshes" / "floor.obj").write_text(QUAD_OBJ)
+    (scenes / "kitchen.xml").write_text(SCENE_XML)
+    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
+                             "render.reference_spp=16", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
+                             "corpus.xml_resolution='film'", "tile.split=[0.0, 0.0, 1.0]", "eval.repeats=1"])
+    outcome = run_eval(cfg, progress=False)
+    assert outcome.scene_ids == ["xml-kitchen"]
+    (scene,) = outcome.result.scenes
+    assert np.load(scene.reference).shape == (30, 40, 3), "the film's 40x30, not render.resolution"
+    assert {row.method for row in outcome.result.table} >= {"noisy", "oidn"}
