@@ -192,12 +192,9 @@ def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
 
 def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
     """A folder of the user's Mitsuba XML scenes renders and tiles like the procedural corpus."""
-    from test_scenes import QUAD_OBJ, SCENE_XML
+    from test_scenes import write_kitchen_scene
 
-    scenes = tmp_path / "my_scenes"
-    (scenes / "meshes").mkdir(parents=True)
-    (scenes / "meshes" / "floor.obj").write_text(QUAD_OBJ)
-    (scenes / "kitchen.xml").write_text(SCENE_XML)
+    scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
     cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
                              "render.reference_spp=8", "render.resolution=[32, 32]", "corpus.n_scenes=0",
                              f"corpus.xml_dirs=['{scenes}']", "tile.patch_size=16", "tile.crops_per_scene=2",

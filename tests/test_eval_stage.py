@@ -70,12 +70,9 @@ def test_cli_eval_prints_table_and_report_path(tmp_path, variant):
 
 def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
     """The README's recipe: a folder of the user's scenes as the whole test set, at each file's film size."""
-    from test_scenes import QUAD_OBJ, SCENE_XML
+    from test_scenes import write_kitchen_scene
 
-    scenes = tmp_path / "my_scenes"
-    (scenes / "meshes").mkdir(parents=True)
-    (scenes / "meshes" / "floor.obj").write_text(QUAD_OBJ)
-    (scenes / "kitchen.xml").write_text(SCENE_XML)
+    scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
     cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
                              "render.reference_spp=16", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
                              "corpus.xml_resolution='film'", "tile.split=[0.0, 0.0, 1.0]", "eval.repeats=1"])

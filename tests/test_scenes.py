@@ -180,9 +180,14 @@ SCENE_XML = """<scene version="3.0.0">
 
 @pytest.fixture
 def xml_scene(tmp_path):
-    (tmp_path / "meshes").mkdir()
-    (tmp_path / "meshes" / "floor.obj").write_text(QUAD_OBJ)
-    path = tmp_path / "kitchen.xml"
+    return write_kitchen_scene(tmp_path)
+
+
+def write_kitchen_scene(folder):
+    """A user's scene folder: kitchen.xml (rough plastic sphere, 40x30 film) and the mesh it references."""
+    (folder / "meshes").mkdir(parents=True)
+    (folder / "meshes" / "floor.obj").write_text(QUAD_OBJ)
+    path = folder / "kitchen.xml"
     path.write_text(SCENE_XML)
     return path
 
