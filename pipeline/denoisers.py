@@ -79,12 +79,26 @@ def _clean(image: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.ascontiguousarray(np.clip(image, low, high))
 
 
+def _guided_inputs(layers: dict[str, np.ndarray], who: str) -> tuple[list[np.ndarray], int]:
+    """([colour, albedo, normal] cleaned for an albedo+normal guided denoiser, colour values replaced).
+
+    Colour: NaN/inf and negatives -> 0 (HDR modes expect non-negative radiance, and a NaN spreads over
+    the whole receptive field); albedo clipped to [0, 1], normals to [-1, 1]."""
+    raw = noisy_color(layers)
+    replaced = int(np.count_nonzero(~np.isfinite(raw)))
+    inputs = [_clean(raw, 0.0, np.inf)]
+    for name, low in (("albedo", 0.0), ("normal", -1.0)):
+        if name not in layers:
+            raise KeyError(f"{who} needs the {name!r} layer (have {', '.join(sorted(layers))})")
+        inputs.append(_clean(layers[name], low, 1.0))
+    return inputs, replaced
+
+
 class OidnDenoiser:
     """Intel Open Image Denoise (pyoidn), HDR mode, with albedo and normal as auxiliary inputs.
 
-    The colour is sanitised first (NaN/inf -> 0, negatives -> 0: OIDN's HDR mode expects
-    non-negative radiance and spreads a NaN over its whole receptive field); albedo is clipped to
-    [0, 1] and normals to [-1, 1]. `last_sanitized` counts the colour values replaced in the latest call.
+    Inputs are sanitised first (`_guided_inputs`); `last_sanitized` counts the colour values replaced
+    in the latest call.
     device="cpu" runs on NumPy arrays; "cuda" or "cuda:N" runs through CUDA torch tensors and
     includes the host<->device copies in its time (untested here: this machine has no GPU).
     pyoidn keeps one device and filter per process and reuses them across images.
@@ -118,13 +132,7 @@ class OidnDenoiser:
             raise ValueError(f"OIDN device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
 
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
-        raw = noisy_color(layers)
-        self.last_sanitized = int(np.count_nonzero(~np.isfinite(raw)))
-        inputs = [_clean(raw, 0.0, np.inf)]
-        for name, low in (("albedo", 0.0), ("normal", -1.0)):
-            if name not in layers:
-                raise KeyError(f"OIDN needs the {name!r} layer (have {', '.join(sorted(layers))})")
-            inputs.append(_clean(layers[name], low, 1.0))
+        inputs, self.last_sanitized = _guided_inputs(layers, "OIDN")
         if self._torch_device is None:
             return self._pyoidn.denoise(*inputs, hdr=True, quality=self.quality)
         import torch
@@ -181,14 +189,8 @@ class OptixDenoiser:
         self.device = f"cuda ({_gpu_name()}, OptiX via Mitsuba {mi.__version__})"
 
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
-        raw = noisy_color(layers)
-        self.last_sanitized = int(np.count_nonzero(~np.isfinite(raw)))
-        for name in ("albedo", "normal"):
-            if name not in layers:
-                raise KeyError(f"OptiX needs the {name!r} layer (have {', '.join(sorted(layers))})")
-        color = _clean(raw, 0.0, np.inf)
-        albedo = _clean(layers["albedo"], 0.0, 1.0)
-        normals = mitsuba_sensor_normals(_clean(layers["normal"], -1.0, 1.0))
+        (color, albedo, normals), self.last_sanitized = _guided_inputs(layers, "OptiX")
+        normals = mitsuba_sensor_normals(normals)
         mi = self._mi
         previous = mi.variant()
         mi.set_variant(OPTIX_VARIANT)
