@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from admc.errors import AdmcError
 from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
 from admc.stores.patches import PatchReader, PatchStoreError
 
@@ -40,7 +41,7 @@ RESUMABLE_CHANGES = ("steps", "val_every", "val_patches", "checkpoint_every", "l
 log = logging.getLogger("admc.train")
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDiverged(AdmcError, RuntimeError):
     """Too many consecutive steps had non-finite losses or gradients."""
 
 

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from admc.errors import AdmcError
 import admc
 from admc.stores.atomic import dumps_canonical, fsync_path, read_json, write_json
 
@@ -35,7 +36,7 @@ STAGE_NAME = re.compile(r"^[a-z][a-z0-9_-]*$")
 FOREIGN_TMP_MAX_AGE_S = 24 * 3600
 
 
-class TaskError(RuntimeError):
+class TaskError(AdmcError, RuntimeError):
     """A task's function failed; the message names the task so a failed run says what to look at."""
 
 

@@ -13,10 +13,11 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from admc.errors import AdmcError
 from admc.model.settings import ModelSettings, TrainSettings
 
 
-class ConfigError(ValueError):
+class ConfigError(AdmcError, ValueError):
     pass
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.errors import AdmcError
 from admc.model.denoiser import MISSING_DEPTH, DenoiseResult
 from admc.stores.exr import BEAUTY, exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
@@ -31,7 +32,7 @@ SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "d
 """File name endings of the separate-file layout (the first three are Open Image Denoise's)."""
 
 
-class DenoiseInputError(ValueError):
+class DenoiseInputError(AdmcError, ValueError):
     """The files given to `denoise` do not form one complete, consistent input."""
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.errors import AdmcError
 from admc.pipeline import evaluate, render, report_html, tile
 from admc.pipeline.config import Config
 from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
@@ -16,7 +17,7 @@ from admc.pipeline.stages import render_corpus
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
 
 
-class EvalStageError(RuntimeError):
+class EvalStageError(AdmcError, RuntimeError):
     pass
 
 

@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, NullFormatter, NullLocator
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from admc.errors import AdmcError
 from admc.pipeline.denoisers import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
 from admc.pipeline.metrics import METRICS, NONFINITE_RULE, count_nonfinite, score
 from admc.stores.atomic import publishing, write_json
@@ -40,7 +41,7 @@ TIMING_RULE = ("denoise seconds = median of {repeats} runs after {warmup} warm-u
                "+ denoise seconds; the path tracer's total is its render time alone.")
 
 
-class EvalError(ValueError):
+class EvalError(AdmcError, ValueError):
     """The test set or the denoisers cannot be evaluated as given."""
 
 

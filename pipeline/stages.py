@@ -5,6 +5,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from admc.errors import AdmcError
 import admc
 from admc.model import transforms
 from admc.pipeline import render, runner, tile
@@ -16,7 +17,7 @@ from admc.stores import patches
 TILE_CODE = code_version(tile, transforms, patches)
 
 
-class StageError(RuntimeError):
+class StageError(AdmcError, RuntimeError):
     """A stage cannot run as asked (e.g. tiling renders that do not exist yet)."""
 
 

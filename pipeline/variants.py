@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import os
 
+from admc.errors import AdmcError
+
 LLVM_LIBRARY = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 PREFERENCE = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
 
 
-class VariantError(RuntimeError):
+class VariantError(AdmcError, RuntimeError):
     pass
 
 

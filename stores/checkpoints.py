@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
 CHECKPOINT_FORMAT = "admc-checkpoint"
@@ -23,7 +24,7 @@ WEIGHTS_FORMAT = "admc-weights"
 FORMAT_VERSION = 1
 
 
-class CheckpointError(ValueError):
+class CheckpointError(AdmcError, ValueError):
     """A checkpoint or weights file is missing, unreadable, or not what the caller needs."""
 
 

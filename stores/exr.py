@@ -13,6 +13,7 @@ import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 
+from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
 RGB = ("R", "G", "B")
@@ -43,7 +44,7 @@ KNOWN_MAGIC = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"#?R
                b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image"}
 
 
-class ExrError(ValueError):
+class ExrError(AdmcError, ValueError):
     """An image file is missing, unreadable, or does not hold what was asked for."""
 
 

@@ -42,6 +42,7 @@ import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 from zarr.storage import LocalStore
 
+from admc.errors import AdmcError
 from admc.stores.atomic import fsync_path
 
 FORMAT = "admc-patches"
@@ -67,7 +68,7 @@ LAYOUT = {
 }
 
 
-class PatchStoreError(ValueError):
+class PatchStoreError(AdmcError, ValueError):
     """A patch store is missing, malformed, or does not match what the caller expects."""
 
 

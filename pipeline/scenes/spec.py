@@ -7,10 +7,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from admc.errors import AdmcError
+
 XML_FAMILY = "xml"
 
 
-class SceneError(ValueError):
+class SceneError(AdmcError, ValueError):
     """A scene cannot be described or loaded; the message names the file or spec and the problem."""
 
 

@@ -1,0 +1,15 @@
+"""The one base class of every failure a user can fix (bad input, config, files, an unreachable scheduler).
+
+The CLI catches AdmcError and prints its message: it names the file or key and the problem. Anything
+else is a bug and keeps its traceback. Subclasses also derive from the built-in type they replaced
+(ValueError, RuntimeError), so callers that caught those keep working.
+"""
+from __future__ import annotations
+
+
+class AdmcError(Exception):
+    """A user-fixable failure; str(error) is the whole message a user sees."""
+
+
+class TrainingError(AdmcError, ValueError):
+    """Training cannot start or resume as asked (settings, checkpoint or data do not fit)."""
