@@ -13,9 +13,13 @@ from admc.model.denoiser import (
     run_tiled,
 )
 from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
-from admc.model.transforms import diffuse_forward, specular_forward
+from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
+LOG_TOLERANCE = 1e-5
+"""Tiled and untiled convolutions sum the same products in another order (oneDNN picks its kernel by
+shape, AVX-512 or AMX): float32 rounding, ~n * 6e-8 relative per conv with fan-in n = 72 here, through
+the network's ~10 layers on O(1) log values, stays well under 1e-5 in the log domain."""
 
 
 def strong_generator(seed: int, scale: float = 1.0) -> Generator:
@@ -116,11 +120,17 @@ def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
     log_untiled = diffuse_forward(untiled.diffuse, albedo), specular_forward(untiled.specular)
     for a, b, branch in zip(log_tiled, log_untiled, ("diffuse", "specular")):  # the networks' domain
         assert 1.0 < b.max() < LOG_MAX[branch] - 0.1  # nothing clamped
-        assert np.abs(a - b).max() <= 1e-5
+        assert np.abs(a - b).max() <= LOG_TOLERANCE
+    # Linear radiance inherits the log-domain difference through the inverse transforms: d/dx of
+    # expm1(x) * (albedo + eps) is (linear + albedo + eps), of expm1(x) it is (linear + 1). So a value of
+    # 1e-3 on albedo 0.5 may move by ~5e-6: a bound relative to the value alone would be luck.
+    gain = {"diffuse": np.abs(untiled.diffuse) + np.clip(albedo, 0, 1) + EPS, "specular": np.abs(untiled.specular) + 1}
+    gain["image"] = gain["diffuse"] + gain["specular"]
     for part in ("image", "diffuse", "specular"):
         a, b = getattr(tiled, part), getattr(untiled, part)
         assert a.shape == (70, 90, 3) and a.dtype == np.float32
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+        rounding = 4 * np.finfo(np.float32).eps * np.abs(b)  # expm1, the product and the sum, in float32
+        assert np.all(np.abs(a - b) <= gain[part] * LOG_TOLERANCE * (1 + 1e-3) + rounding), part
 
 
 def test_overlap_below_the_receptive_radius_is_refused():
