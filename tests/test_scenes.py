@@ -258,3 +258,17 @@ def test_scene_without_sensor_is_named(variant, tmp_path):
         load_scene(SceneSpec("xml-dark", "xml", 0, RES, str(path)))
     with pytest.raises(SceneError, match="no Mitsuba scene"):
         xml_corpus([str(tmp_path)], None)
+
+
+def test_studio_floats_objects_in_a_black_void_or_before_a_sky(variant):
+    specs = [SceneSpec(f"studio-{seed}", "studio", seed, RES) for seed in range(12)]
+    descriptions = [scene_description(spec) for spec in specs]
+    void = [i for i, d in enumerate(descriptions) if "environment" not in d]
+    assert 4 <= len(void) <= 10 and all(any(k.startswith("light_") for k in descriptions[i]) for i in void)
+    for i in void[:3]:  # black environment: most of the frame sees nothing, and the rest is lit
+        image = render(load_scene(specs[i]), spp=16)
+        black = float((image.max(axis=-1) == 0).mean())
+        assert 0.3 < black < 1.0 and luminance(image).max() > 0.05, (i, black)
+    for seed, spec in enumerate(specs):
+        if seed % 4 == 3:  # every fourth scene is purely diffuse
+            assert not analyse(load_scene(spec)).has_specular, seed

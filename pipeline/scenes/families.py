@@ -11,6 +11,7 @@ from typing import Callable
 
 from .room import room
 from .spec import SceneError, SceneSpec
+from .studio import studio
 from .tabletop import tabletop
 
 SEEDS_PER_CORPUS = 1_000_000  # scene seeds of corpus seed s are s * SEEDS_PER_CORPUS + k
@@ -26,6 +27,7 @@ class Family:
 FAMILIES: dict[str, Family] = {
     "room": Family("room", room, "indoor room, furniture, textured/glossy/glass materials, area/point/sky light"),
     "tabletop": Family("tabletop", tabletop, "objects on a ground plane under a sky, close view, mostly specular"),
+    "studio": Family("studio", studio, "objects floating in a black void under small emitters, or before a sky"),
 }
 
 
