@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from .critic import Critic
-from .generator import Generator
+from .generator import build_generator
 from .losses import critic_loss, generator_loss
 from .settings import ModelSettings, TrainSettings
 
@@ -57,7 +57,7 @@ class BranchTrainer:
         self.branch, self.settings, self.device = branch, settings, device
         self.channels_last = device.type == "cuda"
         memory = torch.channels_last if self.channels_last else torch.contiguous_format
-        self.generator = Generator(model.generator_config()).to(device, memory_format=memory)
+        self.generator = build_generator(model.generator_config()).to(device, memory_format=memory)
         self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
         lr = settings.lr_g(branch)
         groups = self.generator.parameter_groups()

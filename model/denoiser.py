@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .generator import Generator
+from .generator import Generator, build_generator
 from .transforms import (
     EPS,
     RADIANCE_MAX,
@@ -44,57 +44,48 @@ LOG_MAX = {
 }
 
 
-def _conv_radius(module: nn.Module) -> int:
-    """Sum of the spatial radii of every Conv2d in `module` (all of them lie on one chain)."""
-    return sum((m.kernel_size[0] // 2) * m.dilation[0] for m in module.modules() if isinstance(m, nn.Conv2d))
-
-
 def receptive_radius(generator: Generator) -> int:
-    """How many pixels away an input can still change an output pixel of `generator`.
-
-    Every spatial conv is 3x3 (radius 1): head 1, two per residual block, body conv 1, tail 2. The
-    encoder's one 3x3 conv runs beside the head and meets the image path at the first CFM layer, so it
-    adds max(head, encoder) rather than both. Paper config (16 blocks): 1 + 32 + 1 + 2 = 36, a 73x73
-    receptive field. The CFM condition nets are 1x1 and add nothing.
-    """
+    """How many pixels away an input can still change an output pixel of `generator` (see its
+    `receptive_radius` method: 36 for the paper's residual body, a 73x73 receptive field)."""
     if not isinstance(generator, Generator):
         raise TypeError(f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
                         f"pass overlap= explicitly for other modules")
-    encoder = _conv_radius(generator.encoder) if generator.encoder is not None else 0
-    after_head = sum(_conv_radius(b) for b in generator.blocks) + _conv_radius(generator.body_conv)
-    after_head += _conv_radius(generator.tail)
-    return max(_conv_radius(generator.head), encoder) + after_head
+    return generator.receptive_radius()
 
 
-def axis_windows(size: int, tile: int, halo: int) -> list[tuple[int, int, int, int]]:
+def axis_windows(size: int, tile: int, halo: int, align: int = 1) -> list[tuple[int, int, int, int]]:
     """(core_start, core_end, crop_start, crop_end) along one axis.
 
     Cores split [0, size) into ceil(size / tile) near-equal parts (balanced, so no sliver tile).
     Every crop has the same length, min(size, longest core + 2 * halo), so tiles can be batched, and
     is shifted inwards at the image borders; each core then has `halo` pixels of real image on every
-    side that is not the image border.
+    side that is not the image border. With `align` > 1 (a multi-scale generator) each crop's start
+    is then moved down to a multiple of `align`, so the network sees the untiled image's pixel grid;
+    crops grow by less than `align`.
     """
-    if size < 1 or tile < 1 or halo < 0:
-        raise ValueError(f"axis_windows: need size >= 1, tile >= 1, halo >= 0; got {size}, {tile}, {halo}")
+    if size < 1 or tile < 1 or halo < 0 or align < 1:
+        raise ValueError(f"axis_windows: need size >= 1, tile >= 1, halo >= 0, align >= 1; got {size}, {tile}, "
+                         f"{halo}, {align}")
     count = math.ceil(size / tile)
     bounds = [round(i * size / count) for i in range(count + 1)]
     crop = min(size, max(b - a for a, b in zip(bounds, bounds[1:])) + 2 * halo)
     windows = []
     for start, end in zip(bounds, bounds[1:]):
         crop_start = min(max(start - halo, 0), size - crop)
-        windows.append((start, end, crop_start, crop_start + crop))
+        windows.append((start, end, crop_start - crop_start % align, crop_start + crop))
     return windows
 
 
-def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int) -> Tensor:
+def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1) -> Tensor:
     """`generator(noisy, feats)` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
-    With halo >= receptive_radius(generator) the result equals the untiled call up to float rounding.
+    With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
+    untiled call up to float rounding.
     """
     _, _, height, width = noisy.shape
     out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
-    for y0, y1, cy0, cy1 in axis_windows(height, tile, halo):
-        for x0, x1, cx0, cx1 in axis_windows(width, tile, halo):
+    for y0, y1, cy0, cy1 in axis_windows(height, tile, halo, align):
+        for x0, x1, cx0, cx1 in axis_windows(width, tile, halo, align):
             crop = generator(noisy[..., cy0:cy1, cx0:cx1], feats[..., cy0:cy1, cx0:cx1])
             out[..., y0:y1, x0:x1] = crop[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
     return out
@@ -171,6 +162,7 @@ class FullImageDenoiser:
         if overlap < radius:
             raise ValueError(f"FullImageDenoiser: overlap {overlap} is below the receptive field radius {radius} "
                              f"of the generator; tiles would not match the untiled image (visible seams)")
+        self.alignment = max(getattr(g, "alignment", 1) for g in self.generators.values())
         if compile:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
         self.tile = tile
@@ -230,7 +222,7 @@ class FullImageDenoiser:
         autocast = (torch.autocast(self.torch_device.type, dtype=self.dtype) if self.dtype != torch.float32
                     else nullcontext())
         with torch.inference_mode(), autocast:
-            out = run_tiled(generator, noisy, feats, self.tile, self.overlap)
+            out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
 
@@ -283,10 +275,10 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
         raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")
-    config = ModelSettings(**model).generator_config()
+    config = ModelSettings.from_saved(model).generator_config()
     generators = {}
     for branch, state in nets.items():
-        generator = Generator(config)
+        generator = build_generator(config)
         generator.load_state_dict({k: v.float() for k, v in state["generator"].items()})
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,

@@ -19,6 +19,9 @@ COLOR_CHANNELS = 3
 # "shift": CFM with beta only (gamma fixed to 1); "scale": CFM with gamma only (beta fixed to 0).
 MODES = ("cfm", "none", "concat", "shift", "scale")
 MODULATED_MODES = ("cfm", "shift", "scale")
+# "residual": the paper's body of residual blocks at full resolution; "unet": the same CFM residual
+# blocks on a multi-scale body (model/unet.py), which sees far more pixels at the same cost.
+BACKBONES = ("residual", "unet")
 
 
 @dataclass(frozen=True)
@@ -31,11 +34,15 @@ class GeneratorConfig:
     encoder_channels: int = 128
     mode: str = "cfm"
     input_skip: bool = False  # admc option: out = ReLU(noisy + tail), so training starts at the identity
+    backbone: str = "residual"
+    levels: int = 3           # unet: times the resolution is halved (blocks then run at 1/2^levels)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"GeneratorConfig.mode: {self.mode!r} is not one of {MODES}")
-        for name in ("channels", "blocks", "cond_channels", "encoder_channels"):
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"GeneratorConfig.backbone: {self.backbone!r} is not one of {BACKBONES}")
+        for name in ("channels", "blocks", "cond_channels", "encoder_channels", "levels"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"GeneratorConfig.{name}: must be a positive int, got {value!r}")
@@ -112,8 +119,12 @@ class Generator(nn.Module):
     """One branch's denoiser: `forward(noisy, features)` -> denoised, same (N, 3, H, W) shape.
 
     Fully convolutional with same-padding everywhere, so any H and W work. The authors' network has
-    no skip from the input to the output; `input_skip` adds one (see GeneratorConfig).
+    no skip from the input to the output; `input_skip` adds one (see GeneratorConfig). This class is
+    the paper's full-resolution body; `build_generator` picks the backbone a config names.
     """
+
+    alignment = 1
+    """Tiles must start at multiples of this (1: the network is equivariant to any shift)."""
 
     def __init__(self, config: GeneratorConfig = GeneratorConfig()) -> None:
         super().__init__()
@@ -122,9 +133,7 @@ class Generator(nn.Module):
         in_channels = COLOR_CHANNELS + FEATURE_CHANNELS if config.mode == "concat" else COLOR_CHANNELS
         self.encoder = EncoderNet(config.encoder_channels, config.cond_channels) if config.modulated else None
         self.head = nn.Conv2d(in_channels, c, 3, padding=1)
-        self.blocks = nn.ModuleList(ResidualBlock(c, self._cfm_pair()) for _ in range(config.blocks))
-        self.body_cfm = self._cfm() if config.modulated else None
-        self.body_conv = nn.Conv2d(c, c, 3, padding=1)
+        self._build_body()
         self.tail = nn.Sequential(
             nn.Conv2d(c, c, 3, padding=1),
             nn.ReLU(inplace=True),
@@ -133,13 +142,29 @@ class Generator(nn.Module):
         )
         scaled_kaiming_(self, 0.1)
 
-    def _cfm(self) -> CFMLayer:
+    def _build_body(self) -> None:
+        c = self.config.channels
+        self.blocks = nn.ModuleList(ResidualBlock(c, self._cfm_pair(c)) for _ in range(self.config.blocks))
+        self.body_cfm = self._cfm(c) if self.config.modulated else None
+        self.body_conv = nn.Conv2d(c, c, 3, padding=1)
+
+    def _cfm(self, channels: int) -> CFMLayer:
         mode = self.config.mode
-        return CFMLayer(self.config.channels, self.config.cond_channels,
+        return CFMLayer(channels, self.config.cond_channels,
                         use_scale=mode in ("cfm", "scale"), use_shift=mode in ("cfm", "shift"))
 
-    def _cfm_pair(self) -> tuple[CFMLayer, CFMLayer] | None:
-        return (self._cfm(), self._cfm()) if self.config.modulated else None
+    def _cfm_pair(self, channels: int) -> tuple[CFMLayer, CFMLayer] | None:
+        return (self._cfm(channels), self._cfm(channels)) if self.config.modulated else None
+
+    def receptive_radius(self) -> int:
+        """How many pixels away an input can still change an output pixel (the denoiser's tile halo).
+
+        Every spatial conv is 3x3 (radius 1): head 1, two per residual block, body conv 1, tail 2. The
+        encoder's one 3x3 conv runs beside the head and meets the image path at the first CFM layer, so
+        it adds max(head, encoder) rather than both. Paper config (16 blocks): 1 + 32 + 1 + 2 = 36, a
+        73x73 receptive field. The CFM condition nets are 1x1 and add nothing.
+        """
+        return 1 + 2 * self.config.blocks + 1 + 2
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Split for the authors' optimiser: the conditioned body and encoder ("body", 5x LR) and
@@ -166,15 +191,26 @@ class Generator(nn.Module):
         self._check_inputs(noisy, features)
         x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else noisy
         cond = self.encoder(features) if self.encoder is not None else None
-        head = self.head(x)
-        f = head
-        for block in self.blocks:
-            f = block(f, cond)
-        if self.body_cfm is not None:
-            f = self.body_cfm(f, cond)
-        out = head + self.body_conv(f)
+        out = self._body(self.head(x), cond)
         if self.config.input_skip:
             # Predict a correction of the (log-domain) input: an untrained network passes the noisy
             # input through, so short CPU trainings improve on it instead of re-learning it first.
             return torch.relu(noisy + self.tail[:-1](out))
         return self.tail(out)
+
+    def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
+        f = head
+        for block in self.blocks:
+            f = block(f, cond)
+        if self.body_cfm is not None:
+            f = self.body_cfm(f, cond)
+        return head + self.body_conv(f)
+
+
+def build_generator(config: GeneratorConfig) -> Generator:
+    """The generator of the backbone `config` names."""
+    if config.backbone == "unet":
+        from .unet import UNetGenerator
+
+        return UNetGenerator(config)
+    return Generator(config)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from .critic import NORMS, CriticConfig
-from .generator import MODES, GeneratorConfig
+from .generator import BACKBONES, MODES, GeneratorConfig
 
 BRANCHES = ("diffuse", "specular")
 DEVICES = ("auto", "cpu", "cuda")
@@ -48,16 +48,26 @@ class ModelSettings:
     critic_channels: int = 64     # critic base width (VGG-128: 64)
     critic_norm: str = "layer"    # none | layer | batch (batch = the authors' choice)
     input_skip: bool = False      # admc option: the generator corrects its input (the authors': no skip)
+    backbone: str = "residual"    # residual (the paper's full-resolution body) | unet (multi-scale, model/unet.py)
+    levels: int = 3               # unet: resolution halvings; `blocks` then run at 1/2^levels
 
     def check(self) -> None:
-        _positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels"))
+        _positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels", "levels"))
         _require(self.mode in MODES, "mode", f"{self.mode!r} is not one of {MODES}")
+        _require(self.backbone in BACKBONES, "backbone", f"{self.backbone!r} is not one of {BACKBONES}")
         _require(self.critic_norm in NORMS, "critic_norm", f"{self.critic_norm!r} is not one of {NORMS}")
         _require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
 
     def generator_config(self) -> GeneratorConfig:
         return GeneratorConfig(channels=self.channels, blocks=self.blocks, cond_channels=self.cond_channels,
-                               encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip)
+                               encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip,
+                               backbone=self.backbone, levels=self.levels)
+
+    @classmethod
+    def from_saved(cls, saved: dict) -> "ModelSettings":
+        """Settings recorded in a checkpoint or weights file; keys added since (e.g. backbone) take the
+        value that reproduces what older files computed, which is the field's default."""
+        return cls(**{**{f: getattr(cls, f) for f in cls.__dataclass_fields__}, **saved})
 
     def critic_config(self, patch_size: int) -> CriticConfig:
         return CriticConfig(base_channels=self.critic_channels, norm=self.critic_norm, patch_size=patch_size)

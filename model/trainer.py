@@ -95,8 +95,9 @@ def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, mode
                      fingerprint: str) -> None:
     if checkpoint["stage"] != stage:
         raise ValueError(f"{path}: is a {checkpoint['stage']!r} checkpoint, cannot resume it as {stage!r}")
-    if checkpoint["model"] != dataclasses.asdict(model):
-        diff = [k for k, v in dataclasses.asdict(model).items() if checkpoint["model"].get(k) != v]
+    saved = dataclasses.asdict(ModelSettings.from_saved(checkpoint["model"]))
+    if saved != dataclasses.asdict(model):
+        diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
         raise ValueError(f"{path}: model settings differ from the checkpoint's in {diff}")
     saved, now = checkpoint["settings"], dataclasses.asdict(settings)
     diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
@@ -114,8 +115,9 @@ def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict
         raise ValueError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
     init_from = Path(init_from)
     nets, saved_model, transform = read_networks(init_from)
-    if saved_model != dataclasses.asdict(model):
-        diff = [k for k, v in dataclasses.asdict(model).items() if saved_model.get(k) != v]
+    saved = dataclasses.asdict(ModelSettings.from_saved(saved_model))
+    if saved != dataclasses.asdict(model):
+        diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
         raise ValueError(f"{init_from}: its model settings differ from the configured ones in {diff}")
     return nets, transform, str(init_from)
 
