@@ -10,6 +10,7 @@ curve the denoisers must beat at equal time.
 from __future__ import annotations
 
 import csv
+import inspect
 import json
 import math
 import re
@@ -24,7 +25,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from admc.errors import AdmcError
 from admc.pipeline.denoisers import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
-from admc.pipeline.metrics import METRICS, NONFINITE_RULE, count_nonfinite, score
+from admc.pipeline.metrics import METRICS, NONFINITE_RULE, count_nonfinite, reference_floor, score
 from admc.stores.atomic import publishing, write_json
 from admc.stores.exr import exr_layers, read_exr
 
@@ -36,6 +37,14 @@ BEST_PERCENT_RULE = (
     f"B.P. = share of the images of that spp on which a method has the best value of the metric. "
     f"Values within rtol {TIE_RTOL:g} (or atol {TIE_ATOL:g}) of the best are ties: each of the k tied "
     f"methods gets 1/k of that image's credit, so every spp/metric column sums to 100 %.")
+FLOOR_ROW = "reference floor"
+FLOOR_KEYS = frozenset({"reference_floor", "relmse_minus_floor"})
+FLOOR_COLUMN = "relMSE − floor"
+FLOOR_RULE = ("The references are renders too: the reference floor row is their own expected relMSE against the "
+              "converged image (metrics.reference_floor, from their variance layers; NaN where a reference has "
+              "none). Every relMSE above is measured against these references and so carries about this much "
+              "of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
+              "error against the converged image (it can fall below 0 by chance).")
 TIMING_RULE = ("denoise seconds = median of {repeats} runs after {warmup} warm-up run(s), each bracketed by "
                "the denoiser's synchronize(); total seconds = the input's render time (from its sidecar) "
                "+ denoise seconds; the path tracer's total is its render time alone.")
@@ -73,10 +82,16 @@ class ImageRecord:
     render_seconds: float
     denoise_seconds: float
     image: Path               # .npy of the (H, W, 3) float32 linear image
+    reference_floor: float = math.nan  # the reference's own expected relMSE (metrics.reference_floor)
 
     @property
     def total_seconds(self) -> float:
         return self.render_seconds + self.denoise_seconds
+
+    @property
+    def relmse_minus_floor(self) -> float:
+        """relMSE less the reference's own noise: an estimate of the error against the converged image."""
+        return self.relmse - self.reference_floor
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,8 @@ class TableRow:
     denoise_seconds: float           # mean over images
     total_seconds: float             # mean over images
     nonfinite: int                   # summed over images
+    reference_floor: float = math.nan       # mean over images of the references' own expected relMSE
+    relmse_minus_floor: float = math.nan    # mean over images of relMSE - reference floor
 
 
 @dataclass
@@ -162,9 +179,14 @@ def find_test_images(renders_dir: Path, scene_ids: list[str] | None = None) -> l
     return sorted(images, key=lambda t: (t.scene_id, t.spp))
 
 
-def _radiance(path: Path) -> np.ndarray:
-    """diffuse + specular of an EXR, reading only those layers."""
-    return noisy_color(read_exr(path, [name for name in ("diffuse", "specular") if name in exr_layers(path)]))
+def _reference(path: Path) -> tuple[np.ndarray, float]:
+    """(diffuse + specular, its reference floor) of a reference EXR; the floor is NaN where the file has
+    no variance layers (a reference rendered elsewhere)."""
+    present = exr_layers(path)
+    layers = read_exr(path, [name for name in ("diffuse", "specular", "diffuse_var", "specular_var") if name in present])
+    radiance = noisy_color(layers)
+    variances = [layers[name] for name in ("diffuse_var", "specular_var") if name in layers]
+    return radiance, reference_floor(sum(variances), radiance) if variances else math.nan
 
 
 def _check_denoisers(denoisers: list[Denoiser]) -> None:
@@ -215,7 +237,7 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
     with _ProgressBar(sum(len(g) for g in grouped.values()) * len(denoisers), progress) as (bar, task):
         for scene_id, group in grouped.items():
             folder = out_dir / "images" / scene_id
-            reference = _radiance(group[0].reference_path)
+            reference, floor = _reference(group[0].reference_path)
             scene = SceneImages(scene_id, _save(folder / "reference.npy", reference))
             for test in sorted(group, key=lambda t: t.spp):
                 layers = read_exr(test.noisy_path)
@@ -225,13 +247,14 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
                                     f"{test.reference_path} is {reference.shape[:2]}")
                 scene.inputs[test.spp] = _save(folder / f"spp{test.spp:04d}_input.npy", noisy)
                 path_tracer.append(_record(test, PATH_TRACER, "render (see sidecars)", noisy, reference, 0.0,
-                                           scene.inputs[test.spp]))
+                                           scene.inputs[test.spp], floor))
                 for denoiser in denoisers:
                     bar.update(task, description=f"{denoiser.name} on {scene_id} @ {test.spp} spp")
                     image, seconds = time_denoiser(denoiser, layers, repeats=repeats, warmup=warmup)
                     saved = _save(folder / f"spp{test.spp:04d}_{denoiser.name}.npy", image)
                     scene.outputs.setdefault(test.spp, {})[denoiser.name] = saved
-                    records.append(_record(test, denoiser.name, denoiser.device, image, reference, seconds, saved))
+                    records.append(_record(test, denoiser.name, denoiser.device, image, reference, seconds, saved,
+                                           floor))
                     bar.advance(task)
             scenes.append(scene)
     devices = {d.name: d.device for d in denoisers}
@@ -253,10 +276,10 @@ def _reference_cost(images: list[TestImage]) -> dict | None:
 
 
 def _record(test: TestImage, method: str, device: str, image: np.ndarray, reference: np.ndarray,
-            seconds: float, saved: Path) -> ImageRecord:
+            seconds: float, saved: Path, floor: float) -> ImageRecord:
     return ImageRecord(test.scene_id, test.spp, method, device, **score(image, reference),
                        nonfinite=count_nonfinite(image), render_seconds=test.render_seconds,
-                       denoise_seconds=seconds, image=saved)
+                       denoise_seconds=seconds, image=saved, reference_floor=floor)
 
 
 class _ProgressBar:
@@ -311,7 +334,8 @@ def aggregate(records: list[ImageRecord], devices: dict[str, str]) -> list[Table
                 {m.key: float(np.mean([getattr(r, m.key) for r in cell])) for m in METRICS},
                 {m.key: shares[m.key].get(method, 0.0) for m in METRICS},
                 float(np.mean([r.denoise_seconds for r in cell])), float(np.mean([r.total_seconds for r in cell])),
-                sum(r.nonfinite for r in cell)))
+                sum(r.nonfinite for r in cell), float(np.mean([r.reference_floor for r in cell])),
+                float(np.mean([r.relmse_minus_floor for r in cell]))))
     return rows
 
 
@@ -332,9 +356,15 @@ def _write_text(path: Path, text: str) -> Path:
     return path
 
 
+def _floor_known(d: dict) -> dict:
+    """JSON has no NaN: a floor that is unknown (a reference without variance layers) is null."""
+    return {k: None if k in FLOOR_KEYS and math.isnan(v) else v for k, v in d.items()}
+
+
 def _record_dict(r: ImageRecord, out_dir: Path) -> dict:
-    d = asdict(r)
+    d = _floor_known(asdict(r))
     d["total_seconds"] = r.total_seconds
+    d["relmse_minus_floor"] = None if math.isnan(r.relmse_minus_floor) else r.relmse_minus_floor
     d["image"] = str(r.image.relative_to(out_dir))
     return d
 
@@ -355,7 +385,7 @@ def _table_csv(result: EvalResult, out_dir: Path) -> Path:
     fields = ["spp", "denoiser", "device", "n_images"]
     for m in METRICS:
         fields += [f"{m.key}_avg", f"{m.key}_bp"]
-    fields += ["denoise_seconds", "total_seconds", "nonfinite"]
+    fields += ["denoise_seconds", "total_seconds", "nonfinite", "reference_floor", "relmse_minus_floor_avg"]
     with publishing(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(fields)
@@ -363,19 +393,21 @@ def _table_csv(result: EvalResult, out_dir: Path) -> Path:
             line = [row.spp, row.method, row.device, row.n_images]
             for m in METRICS:
                 line += [repr(row.average[m.key]), repr(row.best_percent[m.key])]
-            writer.writerow(line + [repr(row.denoise_seconds), repr(row.total_seconds), row.nonfinite])
+            writer.writerow(line + [repr(row.denoise_seconds), repr(row.total_seconds), row.nonfinite,
+                                    repr(row.reference_floor), repr(row.relmse_minus_floor)])
     return path
 
 
 def _table_md(result: EvalResult, out_dir: Path) -> Path:
     head = ["spp", "Denoiser"] + [f"{m.label} {'↓' if m.lower_is_better else '↑'} {part}"
-                                  for m in METRICS for part in ("Avg.", "B.P.")]
+                                  for m in METRICS for part in ("Avg.", "B.P.")] + [f"{FLOOR_COLUMN} ↓ Avg."]
     lines = ["# Table 1: aggregate results over the test images", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for spp in sorted({row.spp for row in result.table}):
         rows = [row for row in result.table if row.spp == spp]
         best = {m.key: (min if m.lower_is_better else max)(row.average[m.key] for row in rows) for m in METRICS}
         top = {m.key: max(row.best_percent[m.key] for row in rows) for m in METRICS}
+        unbiased = min(row.relmse_minus_floor for row in rows)
         for i, row in enumerate(rows):
             cells = [str(spp) if i == 0 else "", row.method]
             for m in METRICS:
@@ -383,11 +415,17 @@ def _table_md(result: EvalResult, out_dir: Path) -> Path:
                 bp = f"{row.best_percent[m.key]:.2f}%"
                 cells.append(f"**{avg}**" if row.average[m.key] == best[m.key] else avg)
                 cells.append(f"**{bp}**" if row.best_percent[m.key] == top[m.key] else bp)
+            value = f"{row.relmse_minus_floor:.4f}"
+            cells.append(f"**{value}**" if row.relmse_minus_floor == unbiased else value)
             lines.append("| " + " | ".join(cells) + " |")
+        floor = f"{rows[0].reference_floor:.4f}"  # every method at one spp is scored against the same references
+        cells = ["", FLOOR_ROW] + [c for m in METRICS for c in ((floor, "–") if m.key == "relmse" else ("–", "–"))]
+        lines.append("| " + " | ".join(cells + ["–"]) + " |")
     counts = ", ".join(f"{spp} spp: {n}" for spp, n in
                        sorted({(row.spp, row.n_images) for row in result.table}))
     lines += ["", f"Images per spp: {counts}. Best average and highest B.P. in bold.", "",
               "**B.P.** " + BEST_PERCENT_RULE + " Shown rounded to 2 decimals.", "",
+              f"**{FLOOR_ROW}** " + FLOOR_RULE, "",
               "**Devices:** " + "; ".join(f"{name}: {dev}" for name, dev in result.devices.items()), "",
               *(["**Weights:** " + "; ".join(f"{name}: {path}" for name, path in result.sources.items()), ""]
                 if result.sources else []),
@@ -443,6 +481,10 @@ def _plot(result: EvalResult, out_dir: Path) -> Path:
         spp = "/".join(str(s) for s in result.reference_cost["spp"])
         ax.axvline(seconds, color="gray", linestyle=":", label=f"reference render ({spp} spp)")
         xs.append(seconds)
+    floor = float(np.mean([r.reference_floor for r in result.path_tracer]))
+    if math.isfinite(floor) and floor > 0:  # below it, differences are the reference's noise
+        ax.axhline(floor, color="gray", linestyle="-.", label="reference floor")
+        points.append((xs[0], floor))
     for axis, values in ((ax.xaxis, xs), (ax.yaxis, [p[1] for p in points])):
         _readable_log_ticks(axis, values)
     ax.set_xlabel("seconds (render + denoise), mean over scenes")
@@ -505,13 +547,16 @@ def _write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int)
         "metrics": {m.key: {"label": m.label, "lower_is_better": m.lower_is_better, "definition": m.definition}
                     for m in METRICS},
         "nonfinite_rule": NONFINITE_RULE,
+        "reference_floor": {"rule": FLOOR_RULE, "definition": inspect.getdoc(reference_floor),
+                            "per_scene": {r.scene_id: _floor_known({"reference_floor": r.reference_floor})["reference_floor"]
+                                          for r in result.path_tracer}},
         "best_percent_rule": BEST_PERCENT_RULE,
         "timing": {"repeats": repeats, "warmup": warmup, "rule": TIMING_RULE.format(repeats=repeats, warmup=warmup)},
         "devices": result.devices,
         "not_run": result.not_run,
         "weights": result.sources,
         "host": cpu_description(),
-        "table": [asdict(row) for row in result.table],
+        "table": [_floor_known(asdict(row)) for row in result.table],
         "images": [_record_dict(r, out_dir) for r in result.records],
         "path_tracer": [_record_dict(r, out_dir) for r in result.path_tracer],
         "equal_time": equal,

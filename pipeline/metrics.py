@@ -53,6 +53,20 @@ def relmse(x: np.ndarray, ref: np.ndarray) -> float:
     return float(np.mean((x - ref) ** 2 / (ref ** 2 + RELMSE_EPS)))
 
 
+def reference_floor(variance: np.ndarray, ref: np.ndarray) -> float:
+    """Reference floor = mean over pixels and channels of var / (ref^2 + 0.01): the relMSE that the
+    reference itself is expected to have against the converged image, from the renderer's variance of
+    each pixel's mean (diffuse_var + specular_var; their covariance is left out).
+
+    Every method's relMSE is measured against this noisy reference, so its expectation is its error
+    against the converged image plus about this floor: differences below the floor are the reference's
+    noise, not the method's, and "relMSE - floor" estimates the error against the converged image.
+    """
+    _check_pair(variance, ref)
+    variance, ref = finite(variance), finite(ref)
+    return float(np.mean(np.maximum(variance, 0.0) / (ref ** 2 + RELMSE_EPS)))
+
+
 def to_ldr(x: np.ndarray) -> np.ndarray:
     """8-bit display image: round(255 * clip(max(x, 0) ^ (1/2.2), 0, 1)) as uint8 (the authors' eval)."""
     x = np.maximum(finite(x), 0.0) ** (1.0 / GAMMA)

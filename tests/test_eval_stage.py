@@ -65,7 +65,7 @@ def test_cli_eval_prints_table_and_report_path(tmp_path, variant):
     assert out.returncode == 0, out.stderr
     assert "oidn" in out.stdout and "HTML report:" in out.stdout
     header = next(line for line in out.stdout.splitlines() if line.startswith("| spp | Denoiser |"))
-    assert header.endswith("relMSE ↓ B.P. |"), "off a terminal the Markdown table must not be wrapped"
+    assert header.endswith("relMSE − floor ↓ Avg. |"), "off a terminal the Markdown table must not be wrapped"
 
 
 def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):

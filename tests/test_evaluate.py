@@ -309,3 +309,47 @@ def test_denoiser_names_are_checked(renders, tmp_path):
     bad.name = "path tracer"
     with pytest.raises(EvalError, match="reserved"):
         evaluate(images, [bad], tmp_path, progress=False)
+
+
+def test_reference_floor_predicts_the_relmse_between_two_independent_references(variant, tmp_path):
+    """Two references of the same scene rendered with other seeds differ by about the sum of their floors:
+    the variance layers say how noisy a reference is (measured: within 10 % on these four scenes)."""
+    from admc.pipeline.metrics import reference_floor, relmse
+
+    folders = []
+    for seed in (0, 1):
+        cfg = load_config(None, [f"run.workdir='{tmp_path / str(seed)}'", "run.scheduler=sync", f"render.seed={seed}",
+                                 "render.resolution=[32, 32]", "render.spp=[4]", "render.reference_spp=64",
+                                 "corpus.n_scenes=4"])
+        folders.append(render_corpus(cfg, progress=False).renders_dir)
+    for scene in sorted(p.name for p in folders[0].iterdir()):
+        a, b = (read_exr(folder / scene / "reference.exr") for folder in folders)
+        ra, rb = a["diffuse"] + a.get("specular", 0), b["diffuse"] + b.get("specular", 0)
+        floors = [reference_floor(x["diffuse_var"] + x.get("specular_var", 0), rb) for x in (a, b)]
+        assert relmse(ra, rb) == pytest.approx(sum(floors), rel=0.25), scene
+
+
+def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
+    from admc.pipeline.metrics import reference_floor
+
+    result, out = evaluated
+    floors = {}
+    for folder in sorted(renders.iterdir()):
+        ref = read_exr(folder / "reference.exr")
+        floors[folder.name] = reference_floor(ref["diffuse_var"] + ref.get("specular_var", 0),
+                                              ref["diffuse"] + ref.get("specular", 0))
+    assert all(0 < f < 0.1 for f in floors.values())
+    for r in result.records + result.path_tracer:
+        assert r.reference_floor == pytest.approx(floors[r.scene_id], rel=1e-12)
+        assert r.relmse_minus_floor == pytest.approx(r.relmse - floors[r.scene_id], rel=1e-12, abs=1e-15)
+    rows = _read_table(out / "table1.csv")
+    for row in rows:
+        assert float(row["reference_floor"]) == pytest.approx(np.mean(list(floors.values())), rel=1e-9)
+        assert float(row["relmse_minus_floor_avg"]) == pytest.approx(
+            float(row["relmse_avg"]) - float(row["reference_floor"]), rel=1e-9, abs=1e-12)
+    md = (out / "table1.md").read_text()
+    floor_rows = [line for line in md.splitlines() if "| reference floor |" in line]
+    assert len(floor_rows) == 2 and f"| {np.mean(list(floors.values())):.4f} |" in floor_rows[0]
+    assert "relMSE − floor" in md and "expected relMSE against the converged image" in md
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["reference_floor"]["per_scene"] == pytest.approx(floors, rel=1e-12)
