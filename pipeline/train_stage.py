@@ -1,7 +1,6 @@
 """`admc-pipe train`: build (or reuse) the patch store, then pretrain or fine-tune both branches."""
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -21,7 +20,7 @@ def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Pa
     if not manifest.is_file():
         return None
     for entry in json.loads(manifest.read_text())["weights"]:
-        if entry["model"] == dataclasses.asdict(model):
+        if ModelSettings.from_saved(entry["model"]) == model:
             return weights_dir / entry["file"]
     return None
 

@@ -13,6 +13,7 @@ import json
 import shutil
 from pathlib import Path
 
+from admc.model.settings import ModelSettings
 from admc.stores.checkpoints import load_checkpoint, load_weights
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
@@ -44,7 +45,8 @@ def main() -> None:
              "sha256": hashlib.sha256(target.read_bytes()).hexdigest(), "bytes": target.stat().st_size}
     manifest_path = WEIGHTS / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"weights": []}
-    manifest["weights"] = [e for e in manifest["weights"] if e["model"] != entry["model"]] + [entry]
+    same = ModelSettings.from_saved(entry["model"])  # one shipped file per architecture: replace its entry
+    manifest["weights"] = [e for e in manifest["weights"] if ModelSettings.from_saved(e["model"]) != same] + [entry]
     manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"{target} ({entry['bytes'] / 2**20:.2f} MiB), manifest: {manifest_path}")
 

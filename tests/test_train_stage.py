@@ -152,3 +152,15 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
     assert out.returncode == 0, out.stderr
     assert "diffuse only" in out.stdout  # a combined colour cannot be split: it says so
     assert read_exr(tmp_path / "shot.denoised.exr")[BEAUTY].shape == (64, 64, 3)
+
+
+def test_the_default_config_finds_the_shipped_weights_and_they_load():
+    """`make demo` fine-tunes from weights/: the default [model] must match a manifest entry (settings
+    added after the weights were shipped take the defaults that reproduce them)."""
+    from admc.model.denoiser import load_denoiser
+
+    model = load_config().model
+    path = shipped_weights(model)
+    assert path is not None and path.is_file()
+    denoiser = load_denoiser(path)
+    assert set(denoiser.generators) == {"diffuse", "specular"}
