@@ -29,6 +29,7 @@ from admc.stores.patches import PatchReader, PatchStoreError
 from .branch import BranchTrainer
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
+from .selection import BestNetworks
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
 from .validation import validate
@@ -57,6 +58,7 @@ class TrainResult:
     last_losses: dict[str, dict[str, float]]
     validation: dict[str, dict[str, float]]
     notes: list[str] = field(default_factory=list)
+    selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
 
 
 def resolve_device(name: str) -> torch.device:
@@ -231,19 +233,30 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
             if b not in init_nets:
                 raise ValueError(f"{init_from}: has no {b} branch to fine-tune")
             trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(init_from))
+    best = BestNetworks()
+    if checkpoint is not None:
+        best.load_state_dict(checkpoint.get("best", {}))
 
     def state(step: int) -> dict:
         return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings),
                 "model": dataclasses.asdict(model), "transform": transform,
                 "store": {"path": str(store), "fingerprint": fingerprint, "patch_size": patch_size},
                 "init_from": str(init_from) if init_from is not None else None,
-                "branches": {b: t.state_dict() for b, t in trainers.items()}, "rng": _rng_state()}
+                "branches": {b: t.state_dict() for b, t in trainers.items()}, "best": best.state_dict(),
+                "rng": _rng_state()}
 
     pin = device.type == "cuda"
     streams = {b: iter(train_loader(readers[b], settings.batch_size, branch_seed(settings.seed, b),
                                     trainers[b].batches, settings.num_workers, pin)) for b in trainers}
     metrics = MetricsLog(out_dir, resume_step=start if resume else None)
     averages, last_losses, validation = _Averages(), {}, {}
+
+    def validate_all(step: int) -> None:
+        for b, rows in val.items():
+            validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device)
+            metrics.log(step, {f"{b}/val_{k}": v for k, v in validation[b].items()})
+            best.offer(b, step, validation[b]["relmse"], trainers[b].generator, trainers[b].critic)
+
     last_saved = start if resume else None
     # A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
     # so there the logged averages go out as one plain line every log_every steps instead.
@@ -251,6 +264,8 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     bar = tqdm(total=settings.steps, initial=start, disable=not live, desc=stage, dynamic_ncols=True)
     window_start, window_patches = time.perf_counter(), 0
     try:
+        if start == 0 and settings.val_every:
+            validate_all(0)  # the starting weights: what the run must beat to ship anything else
         for step in range(start, settings.steps):
             for b, trainer in trainers.items():
                 batches = [next(streams[b]) for _ in range(trainer.batches_per_step(step))]
@@ -285,9 +300,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
                     print(f"{stage} step {done}/{settings.steps}: {line}", file=sys.stderr, flush=True)
                 window_start, window_patches = time.perf_counter(), 0
             if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
-                for b, rows in val.items():
-                    validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device)
-                    metrics.log(done, {f"{b}/val_{k}": v for k, v in validation[b].items()})
+                validate_all(done)
             streak = any(t.bad_consecutive for t in trainers.values())
             if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
                 save_checkpoint(checkpoint_path, state(done))
@@ -297,14 +310,17 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         metrics.close()
         del streams
 
-    export_weights(weights_path, {b: {"generator": t.generator.state_dict(), "critic": t.critic.state_dict()}
-                                  for b, t in trainers.items()},
+    last_step = max(start, settings.steps)
+    selected, selection_notes = best.summary(last_step, {b: v["relmse"] for b, v in validation.items()})
+    for note in selection_notes:
+        say(note)
+    export_weights(weights_path, {b: best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
                    {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
-                    "stage": stage, "step": max(start, settings.steps), "store_fingerprint": fingerprint})
+                    "stage": stage, "step": last_step, "selected": selected, "store_fingerprint": fingerprint})
     return TrainResult(out_dir=out_dir, checkpoint=checkpoint_path, weights=weights_path,
-                       step=max(start, settings.steps), branches=list(trainers), skipped_branches=skipped,
+                       step=last_step, branches=list(trainers), skipped_branches=skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=last_losses,
-                       validation=validation, notes=notes)
+                       validation=validation, notes=notes, selected=selected)
 
 
 def _postfix(values: dict[str, float]) -> dict[str, str]:

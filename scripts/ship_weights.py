@@ -19,11 +19,14 @@ from admc.stores.checkpoints import load_checkpoint, load_weights
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 
 
-def last_validation(run: Path) -> dict:
+def shipped_validation(run: Path, selected: dict) -> dict:
+    """Each branch's validation values at the step its shipped networks come from (the last step's for
+    weights that record no selection)."""
     values: dict[str, float] = {}
     with open(run / "metrics.csv") as f:
         for row in csv.DictReader(f):
-            if "/val_" in row["tag"]:
+            branch = row["tag"].split("/")[0]
+            if "/val_" in row["tag"] and (branch not in selected or int(row["step"]) == selected[branch]["step"]):
                 values[row["tag"]] = round(float(row["value"]), 5)
     return values
 
@@ -41,7 +44,8 @@ def main() -> None:
     shutil.copyfile(args.run / "weights-fp16.pt", target)
     entry = {"file": target.name, "model": weights["metadata"]["model"], "stage": checkpoint["stage"],
              "steps": checkpoint["step"], "settings": checkpoint["settings"],
-             "validation": last_validation(args.run), "note": args.note,
+             "selected": weights["metadata"].get("selected", {}),
+             "validation": shipped_validation(args.run, weights["metadata"].get("selected", {})), "note": args.note,
              "sha256": hashlib.sha256(target.read_bytes()).hexdigest(), "bytes": target.stat().st_size}
     manifest_path = WEIGHTS / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"weights": []}

@@ -1,0 +1,86 @@
+"""Training ships each branch's best networks by validation, not its last, and a fine-tuning that never
+beats its starting weights ships them unchanged (real tiny store, real training steps)."""
+import dataclasses
+import shutil
+
+import pytest
+import torch
+import zarr
+from torch import nn
+from zarr.storage import LocalStore
+
+from conftest import build_tiny_store
+from admc.model.selection import BestNetworks
+from admc.model.settings import ModelSettings, TrainSettings
+from admc.model.trainer import train
+from admc.stores.checkpoints import load_checkpoint, load_weights
+from admc.stores.patches import list_scenes
+
+TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4, input_skip=True)
+SETTINGS = TrainSettings(steps=6, batch_size=2, l1_warmup_steps=6, critic_only_steps=0, lr_g_diffuse=1e-4,
+                         lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=0, lr_milestones=(100,), val_every=2,
+                         val_patches=8, checkpoint_every=2, log_every=2, num_workers=0, threads=0, device="cpu",
+                         seed=3, max_bad_steps=3)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory, variant):
+    return build_tiny_store(tmp_path_factory.mktemp("selection_store"), size=64, patch=32)
+
+
+def test_best_networks_keep_the_lowest_value_and_the_earlier_step_on_ties():
+    best, net = BestNetworks(), nn.Linear(2, 1)
+    assert best.offer("diffuse", 0, 0.5, net, net)
+    with torch.no_grad():
+        net.weight.fill_(7.0)
+    assert not best.offer("diffuse", 2, 0.5, net, net) and not best.offer("diffuse", 4, 0.6, net, net)
+    kept = best.networks("diffuse", net, net)["generator"]["weight"]
+    assert not torch.equal(kept, net.weight)  # the copy from step 0, not the live module
+    assert best.offer("diffuse", 6, 0.4, net, net) and best.best["diffuse"].step == 6
+    assert best.networks("specular", net, net)["generator"] is not None  # never validated: the given ones
+    again = BestNetworks()
+    again.load_state_dict(best.state_dict())
+    assert again.best["diffuse"].step == 6 and again.best["diffuse"].value == 0.4
+
+
+def glaring_targets(store, tmp_path):
+    """A copy of the store whose train references are all glaring white: training on it can only make the
+    generator worse on the (untouched) val split."""
+    copy = tmp_path / "glaring.zarr"
+    shutil.copytree(store, copy)
+    for scene in list_scenes(copy, "train"):
+        for name in ("ref_diffuse", "ref_specular"):
+            if (copy / "train" / scene / name).is_dir():
+                array = zarr.open_array(store=LocalStore(copy / "train" / scene / name), mode="r+")
+                array[...] = 4.0  # log domain: ~50x the radiance of a mid-grey
+    return copy
+
+
+def test_a_finetuning_that_only_gets_worse_ships_its_starting_weights(store, tmp_path):
+    pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, val_every=0), TINY, progress=False)
+    worse = dataclasses.replace(SETTINGS, lr_g_diffuse=1e-3, lr_g_specular=1e-3)
+    fine = train(glaring_targets(store, tmp_path), tmp_path / "fine", worse, TINY, stage="finetune",
+                 init_from=pre.weights, progress=False)
+    start, shipped = load_weights(pre.weights), load_weights(fine.weights)
+    for branch in ("diffuse", "specular"):
+        assert fine.selected[branch]["step"] == 0
+        assert fine.validation[branch]["relmse"] > fine.selected[branch]["val_relmse"]
+        for name, value in start["branches"][branch]["generator"].items():
+            assert torch.equal(shipped["branches"][branch]["generator"][name], value), (branch, name)
+    assert any("no step beat the starting weights" in note for note in fine.notes)
+    assert shipped["metadata"]["selected"] == fine.selected
+    # the checkpoint still holds the last state, so the run resumes where it stopped
+    last = load_checkpoint(fine.checkpoint)["branches"]["diffuse"]["generator"]["head.weight"]
+    assert not torch.equal(last.half(), start["branches"]["diffuse"]["generator"]["head.weight"])
+
+
+def test_a_resumed_run_keeps_the_best_it_had_and_ships_what_one_run_ships(store, tmp_path):
+    whole = train(store, tmp_path / "whole", SETTINGS, TINY, progress=False)
+    train(store, tmp_path / "split", dataclasses.replace(SETTINGS, steps=4), TINY, progress=False)
+    second = train(store, tmp_path / "split", SETTINGS, TINY, resume=True, progress=False)
+    assert second.selected == whole.selected and set(whole.selected) == {"diffuse", "specular"}
+    a, b = load_weights(whole.weights), load_weights(second.weights)
+    for branch in ("diffuse", "specular"):
+        for net in ("generator", "critic"):
+            for name, value in a["branches"][branch][net].items():
+                assert torch.equal(b["branches"][branch][net][name], value), (branch, net, name)
