@@ -47,8 +47,9 @@ def test_a_failed_render_is_listed_with_its_scene_file_and_a_rerun_renders_only_
     assert lines[0].startswith("error: 2 task(s) failed, 0 skipped") and "2 of 4 are published" in lines[0]
     assert len(lines) == 3
     for line, level in zip(lines[1:], ("2 spp", "reference 4 spp")):
-        assert line.startswith(f"  render 'xml-bad @ {level}' ({bad}): Mitsuba could not load the scene: "
-                               'failed to instantiate shape plugin of type "obj": ')
+        assert line.startswith(f"  render 'xml-bad @ {level}' ({bad}): Mitsuba could not load the scene: <shape> "
+                               f'naming {bad.parent / "meshes" / "floor.obj"}: failed to instantiate shape plugin '
+                               'of type "obj": ')
     assert (tmp_path / "work" / "renders" / "xml-good" / "reference.exr").is_file(), "the good scene is rendered"
 
     (bad.parent / "meshes" / "floor.obj").write_text(QUAD_OBJ)

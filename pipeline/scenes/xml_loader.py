@@ -19,8 +19,8 @@ from .spec import XML_FAMILY, SceneError, SceneSpec
 
 DEFAULT_RESOLUTION = (768, 576)  # Mitsuba's hdrfilm default, used when the XML gives none
 _REFERENCE = re.compile(r"\$(\w+)")
-# Where in Mitsuba's source, and where in the rewritten string we hand it: neither means anything to a user.
-_MITSUBA_LOCATION = re.compile(r"\[[\w.]+:\d+\] |At string \(line \d+, col \d+\): ")
+_MITSUBA_SOURCE = re.compile(r"\[[\w.]+:\d+\] ")  # where in Mitsuba's C++ an error was raised
+_AT_STRING = re.compile(r"At string \(line (\d+), col (\d+)\): ")  # where in the rewritten XML we loaded
 
 
 def _parse(path: Path) -> ET.Element:
@@ -173,7 +173,8 @@ def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
 def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None):
     """Load a user scene with an hdrfilm + box filter at `resolution` (None keeps the XML's).
 
-    Included files may name files relative to themselves, so the scene's folder is also put on
+    Our own file names are absolute; included files keep theirs, which Mitsuba resolves on the
+    scene's search path (its folder first, as `mi.load_file` would), so the scene's folder is put on
     Mitsuba's (process-wide) file resolver for the duration of the load.
     """
     import mitsuba as mi
@@ -185,9 +186,26 @@ def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None):
     try:
         return mi.load_string(text, optimize=False)  # merging reorders shapes per load (see loading.py)
     except RuntimeError as error:
-        raise SceneError(f"{path}: Mitsuba could not load the scene: {_MITSUBA_LOCATION.sub('', str(error))}") from error
+        problem = _AT_STRING.sub(lambda match: _element_at(text, match), _MITSUBA_SOURCE.sub("", str(error)))
+        raise SceneError(f"{path}: Mitsuba could not load the scene: {problem}") from error
     finally:
         mi.set_file_resolver(saved)
+
+
+def _element_at(text: str, match: re.Match) -> str:
+    """Mitsuba's line and column point into our rewritten XML, which the user never sees: name the
+    element there and the files it names instead."""
+    data = text.encode("utf-8")
+    line, column = int(match[1]), int(match[2])
+    offset = sum(len(row) + 1 for row in data.split(b"\n")[:line - 1]) + column - 1  # at the tag's name
+    index = len(re.findall(rb"<(?![/!?])", data[:offset])) - 1  # elements start in document order
+    elements = list(ET.fromstring(text).iter())
+    if not 0 <= index < len(elements):
+        return ""
+    element = elements[index]
+    files = [e.get("value", "") for e in element.iter() if e.tag == "string" and e.get("name") == "filename"]
+    files += [e.get("filename", "") for e in element.iter() if "filename" in e.attrib]
+    return f"<{element.tag}> naming {', '.join(files)}: " if files else ""  # Mitsuba's message names the plugin
 
 
 def xml_content_bytes(path: str | Path, resolution: tuple[int, int] | None) -> bytes:
