@@ -115,8 +115,9 @@ def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str,
             folder = Path(name) if Path(name).is_absolute() else Path(str(resolver.resolve(name)))
             if not folder.is_dir():
                 raise SceneError(f"{path}: <path> folder {name!r} not found (looked in {_search_list(resolver)})")
+            folder = folder.resolve()
             resolver.prepend(str(folder))
-            found.append(_Reference(element, "value", name, folder.resolve(), path))
+            found.append(_Reference(element, "value", name, folder, path))
         elif element.tag == "string" and element.get("name") == "filename":
             strings.append((element, _substitute(element.get("value", ""), defaults, path), path))
         elif "filename" in element.attrib:  # <include>, <spectrum>
