@@ -28,6 +28,7 @@ def _user_errors(fn):
     """Known, user-caused failures print one clear line and exit 2 instead of a traceback."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        from admc.errors import AdmcError
         from admc.model.trainer import TrainingDiverged
         from admc.pipeline.eval_stage import EvalStageError
         from admc.pipeline.stages import StageError
@@ -35,7 +36,7 @@ def _user_errors(fn):
 
         try:
             return fn(*args, **kwargs)
-        except (ValueError, VariantError, StageError, EvalStageError, TrainingDiverged, FileNotFoundError) as exc:
+        except (AdmcError, ValueError, VariantError, StageError, EvalStageError, TrainingDiverged, FileNotFoundError) as exc:
             # ValueError covers ConfigError, SceneError, ExrError, PatchStoreError, EvalError, CheckpointError
             # and the trainer's refusals; ADMC_DEBUG=1 shows the traceback instead.
             if os.environ.get("ADMC_DEBUG"):

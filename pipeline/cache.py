@@ -72,7 +72,8 @@ class Task:
     """One cached unit of work: fn(out_dir, inputs, **params) writes into out_dir and returns a JSON summary.
 
     `inputs` maps a name to an upstream Task; fn receives the same names mapped to their published
-    folders. `code_version` defaults to code_version(fn).
+    folders. `code_version` defaults to code_version(fn). `source` names what the task works on as
+    its user knows it (a scene file), so a failure report can point there; it is not part of the key.
     """
 
     stage: str
@@ -81,6 +82,7 @@ class Task:
     params: dict = dataclasses.field(default_factory=dict)
     inputs: dict[str, Task] = dataclasses.field(default_factory=dict)
     code_version: str = ""
+    source: str = ""
 
     def __post_init__(self) -> None:
         if not STAGE_NAME.match(self.stage):

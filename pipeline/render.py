@@ -95,13 +95,13 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
     return sidecar
 
 
-def corpus(cfg: Config) -> list[SceneSpec]:
-    """Procedural scenes, then the user's XML scenes."""
+def corpus(cfg: Config, left_out: list[scenes.SceneError] | None = None) -> list[SceneSpec]:
+    """Procedural scenes, then the user's XML scenes (a broken one raises, or goes to `left_out`: see xml_corpus)."""
     specs = scenes.procedural_corpus(list(cfg.corpus.families), cfg.corpus.n_scenes, cfg.corpus.seed,
                                      cfg.render.resolution)
     if cfg.corpus.xml_dirs:
         own_film = cfg.corpus.xml_resolution == "film"
-        specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), None if own_film else cfg.render.resolution)
+        specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), None if own_film else cfg.render.resolution, left_out)
     return specs
 
 
@@ -123,8 +123,13 @@ def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Tas
             }
             label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp"
             tasks[spec.scene_id][name] = Task(stage="render", label=label, fn=_render_task, params=params,
-                                              code_version=RENDER_CODE)
+                                              code_version=RENDER_CODE, source=scene_source(spec))
     return tasks
+
+
+def scene_source(spec: SceneSpec) -> str:
+    """What a user calls the scene: its XML file, or the procedural scene's id."""
+    return spec.xml_path or spec.scene_id
 
 
 def _render_task(out_dir: Path, inputs: dict, *, scene_hash: str, **params) -> dict:

@@ -3,7 +3,8 @@
 Tasks already published are not scheduled at all. The rest become one dask node each that calls
 `StageCache.run_task` with its inputs' published folders. A failing task does not stop the others:
 independent tasks finish and publish, dependents of the failed one are skipped, and the run then
-raises a TaskError naming the failed task, so the next run resumes with only what is left.
+raises one TaskError listing every failed task (what it works on, the cause in one line), so the
+next run resumes with only what is left.
 """
 from __future__ import annotations
 
@@ -11,17 +12,25 @@ import dataclasses
 import functools
 import logging
 import os
+import socket
 import traceback
 from pathlib import Path
 
 import dask
 from dask.callbacks import Callback
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from admc.errors import AdmcError
 from admc.pipeline.cache import StageCache, Task, TaskError
 
 LOCAL_SCHEDULERS = ("sync", "threads")
+PROBE_TIMEOUT_S = 5.0  # for the first TCP connect only; a scheduler that answers keeps dask's own timeouts
+
+
+class SchedulerError(AdmcError, ConnectionError):
+    """run.scheduler names a dask scheduler that cannot be reached."""
 
 
 @dataclasses.dataclass
@@ -75,6 +84,8 @@ def run(tasks: list[Task], cache: StageCache, *, scheduler: str = "sync", worker
     pending = [task for key, task in graph.items() if key not in published]
     if not pending:
         return published
+    if scheduler not in (*LOCAL_SCHEDULERS, "processes"):
+        _probe(scheduler)  # before the bar: an unreachable scheduler is one message, not a bar stuck at 0
     with _Bar(total=len(graph), done=len(published), enabled=progress) as bar:
         if scheduler in LOCAL_SCHEDULERS:
             outcomes = _run_local(pending, published, cache, scheduler, workers, bar)
@@ -84,10 +95,12 @@ def run(tasks: list[Task], cache: StageCache, *, scheduler: str = "sync", worker
     failed = [out for out in outcomes.values() if isinstance(out, _Failed) and out.detail]
     skipped = sum(isinstance(out, _Failed) and not out.detail for out in outcomes.values())
     if failed:
-        error = TaskError(f"{len(failed)} task(s) failed, {skipped} skipped for lack of their inputs; "
-                          f"{len(published)} of {len(graph)} are published and stay cached (rerun to resume). "
-                          f"First failure: {failed[0].message}")
-        error.add_note(failed[0].detail)
+        lines = [f"{len(failed)} task(s) failed, {skipped} skipped for lack of their inputs; "
+                 f"{len(published)} of {len(graph)} are published and stay cached (fix the cause and rerun: "
+                 "only the rest runs):", *(f"  {out.message}" for out in failed)]
+        error = TaskError("\n".join(lines))
+        for out in failed:
+            error.add_note(out.detail)
         raise error
     return published
 
@@ -104,7 +117,18 @@ def _run_node(cache: StageCache, task: Task, inputs: dict[str, Path | _Failed]) 
     try:
         return cache.run_task(task, inputs)
     except TaskError as exc:
-        return _Failed(task.label, str(exc), "".join(traceback.format_exception(exc)))
+        return _Failed(task.label, _failure_line(task, exc), "".join(traceback.format_exception(exc)))
+
+
+def _failure_line(task: Task, error: TaskError) -> str:
+    """'<stage> <label> (<source>): <cause>' on one line; a user error's own message needs no type name."""
+    cause = error.__cause__ or error
+    text = str(cause) if isinstance(cause, AdmcError) else f"{type(cause).__name__}: {cause}"
+    where = ""
+    if task.source and task.source not in task.label:
+        text = text.removeprefix(f"{task.source}: ")  # a scene error starts with the file it is about
+        where = f" ({task.source})"
+    return f"{task.stage} {task.label!r}{where}: {' '.join(text.split())}"
 
 
 def _inputs_of(task: Task, published: dict[str, Path], nodes: dict) -> dict:
@@ -133,7 +157,11 @@ def _run_distributed(pending, published, cache, scheduler, workers, bar) -> dict
                                dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster)
     else:
-        cluster, client = None, Client(scheduler)
+        try:
+            cluster, client = None, Client(scheduler)
+        except OSError as error:  # something answers there, but not as a dask scheduler
+            raise SchedulerError(f"could not connect to the dask scheduler at {scheduler} (run.scheduler): "
+                                 f"{error}") from error
     try:
         futures = {}
         for task in pending:
@@ -149,6 +177,29 @@ def _run_distributed(pending, published, cache, scheduler, workers, bar) -> dict
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _probe(address: str) -> None:
+    """SchedulerError (naming the address) when it is no scheduler address or nothing listens there.
+
+    A TCP address gets a short connect first: dask itself retries for its 30 s connect timeout and
+    then raises a bare OSError. Other protocols (ucx, inproc) are left to dask.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme not in ("tcp", "tls"):
+            return
+        host, port = parse_host_port(location)
+    except ValueError as error:
+        raise SchedulerError(f"run.scheduler = {address!r} is not sync, threads, processes or a dask scheduler "
+                             f"address such as tcp://host:8786 ({error})") from None
+    try:
+        socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S).close()
+    except OSError as error:
+        raise SchedulerError(f"no dask scheduler answers at {address} (run.scheduler): {error}. Start one "
+                             "(`dask scheduler`) or use run.scheduler = processes, threads or sync") from None
 
 
 class _Bar:
@@ -176,7 +227,7 @@ class _Bar:
             self.failed += bool(outcome.detail)
             self.skipped += not outcome.detail
             if self.enabled:
-                self.progress.console.print(f"[red]{outcome.message}[/]")
+                self.progress.console.print(f"[red]{escape(outcome.message)}[/]")  # Mitsuba's [file.cpp:N]
         trouble = f" ({self.failed} failed, {self.skipped} skipped)" if self.failed or self.skipped else ""
         self.progress.update(self.bar, advance=1, description=f"done {label}{trouble}")
         if self.enabled and not self.progress.console.is_terminal:

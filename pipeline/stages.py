@@ -9,9 +9,9 @@ from admc.errors import AdmcError
 import admc
 from admc.model import transforms
 from admc.pipeline import render, runner, tile
-from admc.pipeline.cache import StageCache, Task, code_version
+from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config
-from admc.pipeline.scenes import SceneSpec
+from admc.pipeline.scenes import SceneError, SceneSpec
 from admc.stores import patches
 
 TILE_CODE = code_version(tile, transforms, patches)
@@ -51,13 +51,37 @@ def _sidecars(renders: dict[str, dict[str, Task]], published: dict[str, Path]) -
             for levels in renders.values() for t in levels.values()]
 
 
+def _run_corpus(cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Task]], left_out: list[SceneError],
+                progress: bool) -> tuple[dict[str, Path], int, Path]:
+    """Run the corpus's tasks and link every fully rendered scene under workdir/renders; then fail
+    naming each failed task and each scene file left out, so the good scenes' work is done first."""
+    cache = open_cache(cfg)
+    try:
+        published, cached = run_cached(cfg, tasks, progress)
+        failure = None
+    except TaskError as error:
+        published, cached, failure = {}, 0, error
+    done = {scene_id: levels for scene_id, levels in renders.items() if all(map(cache.is_done, levels.values()))}
+    paths = {task.key: cache.path(task) for levels in done.values() for task in levels.values()}
+    renders_dir = render.link_renders(done, paths, Path(cfg.run.workdir) / "renders")
+    if failure is None and not left_out:
+        return published, cached, renders_dir
+    report = [str(failure)] if failure is not None else []
+    if left_out:
+        report += [f"{len(left_out)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
+                   *(f"  {error}" for error in left_out)]
+    raise StageError("\n".join(report)) from failure
+
+
 def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | None = None) -> StageResult:
-    """Render every (scene, spp) of the corpus (or of `specs`) not cached yet; link the EXRs under workdir/renders."""
-    specs = render.corpus(cfg) if specs is None else specs
+    """Render every (scene, spp) of the corpus (or of `specs`) not cached yet; link the EXRs under workdir/renders.
+
+    A broken scene file or a failed render does not stop the others: they finish first, then this raises."""
+    left_out: list[SceneError] = []
+    specs = render.corpus(cfg, left_out) if specs is None else specs
     renders = render.render_tasks(cfg, specs)
     tasks = [t for levels in renders.values() for t in levels.values()]
-    published, cached = run_cached(cfg, tasks, progress)
-    renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
+    published, cached, renders_dir = _run_corpus(cfg, tasks, renders, left_out, progress)
     return StageResult(specs, _sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached,
                        tasks)
 
@@ -77,8 +101,9 @@ def store_attributes(cfg: Config) -> dict:
 
 
 def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = True) -> StageResult:
-    """Render + tile as one graph: each scene's tile task depends on its render tasks."""
-    specs = render.corpus(cfg)
+    """Render + tile as one graph: each scene's tile task depends on its render tasks (failures: see render_corpus)."""
+    left_out: list[SceneError] = []
+    specs = render.corpus(cfg, left_out)
     renders = render.render_tasks(cfg, specs)
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
@@ -97,12 +122,12 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "store": str(store_path), "split": split, "scene_id": spec.scene_id,
                         "scene_hash": levels["reference"].params["scene_hash"],
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
-                        "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed})
+                        "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed},
+                    source=render.scene_source(spec))
         if cache.is_done(task) and not patches.has_scene(store_path, split, spec.scene_id):
             cache.forget(task)  # the store lost this scene (deleted or moved): tile it again
         tiles.append(task)
-    published, cached = run_cached(cfg, tiles, progress)
-    renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
+    published, cached, renders_dir = _run_corpus(cfg, tiles, renders, left_out, progress)
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
     return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,

@@ -228,7 +228,7 @@ def test_threads_scheduler_and_progress_output(tmp_path, log, capfd):
 def test_failure_keeps_published_tasks_and_rerun_runs_only_the_rest(tmp_path, log):
     cache, tasks = StageCache(tmp_path / "cache"), graph(log)
     (log / "fail-c").touch()
-    with pytest.raises(TaskError, match=r"1 task\(s\) failed, 1 skipped.*3 of 5 are published.*'c task'") as info:
+    with pytest.raises(TaskError, match=r"(?s)1 task\(s\) failed, 1 skipped.*3 of 5 are published.*'c task'") as info:
         run([tasks["d"], tasks["e"]], cache, progress=False)
     assert "RuntimeError: told to fail c" in "".join(info.value.__notes__)
     assert {n for n, t in tasks.items() if cache.is_done(t)} == {"a", "b", "e"}

@@ -3,19 +3,24 @@
 A user's file may carry any film, reconstruction filter or integrator. We parse it with
 ElementTree, swap every sensor's film for an `hdrfilm` with a `box` filter (a Gaussian splats
 samples across pixels, which denoisers handle badly), rewrite referenced file names to absolute
-paths and load the result with `mi.load_string`. Referenced files are checked up front so a
-missing mesh is reported by name instead of as a parser error deep inside Mitsuba.
+paths and load the result with `mi.load_string`. Referenced files are found the way Mitsuba's
+own parser finds them (its file resolver, the scene's <path> folders included) and checked up
+front, so a missing mesh is reported by name instead of as a parser error deep inside Mitsuba,
+and the scene hash covers exactly the files Mitsuba loads.
 """
 from __future__ import annotations
 
 import re
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 
 from .spec import XML_FAMILY, SceneError, SceneSpec
 
 DEFAULT_RESOLUTION = (768, 576)  # Mitsuba's hdrfilm default, used when the XML gives none
 _REFERENCE = re.compile(r"\$(\w+)")
+_MITSUBA_SOURCE = re.compile(r"\[[\w.]+:\d+\] ")  # where in Mitsuba's C++ an error was raised
+_AT_STRING = re.compile(r"At string \(line (\d+), col (\d+)\): ")  # where in the rewritten XML we loaded
 
 
 def _parse(path: Path) -> ET.Element:
@@ -66,31 +71,79 @@ def xml_resolution(path: str | Path) -> tuple[int, int]:
     return size[0], size[1]
 
 
-def _filename_slots(root: ET.Element):
-    """(element, attribute) pairs that hold a file name: <string name="filename" value=...>,
-    and a `filename` attribute (<include>, <spectrum>)."""
-    for element in root.iter():
-        if element.tag == "string" and element.get("name") == "filename":
-            yield element, "value"
-        elif "filename" in element.attrib:
-            yield element, "filename"
+@dataclass(frozen=True)
+class _Reference:
+    element: ET.Element
+    attribute: str
+    name: str      # as its file writes it, $defaults substituted
+    target: Path   # the absolute file (or <path> folder) Mitsuba's resolver finds
+    owner: Path    # the XML file that names it
 
 
-def _referenced_files(path: Path, root: ET.Element, seen: set[Path] | None = None) -> list[tuple[ET.Element, str, Path]]:
-    """Every file the scene references (through includes too), resolved next to the file that names it."""
-    seen = set() if seen is None else seen
-    defaults = _defaults(root)
+def _references(path: Path, root: ET.Element) -> list[_Reference]:
+    """Every file and <path> folder the scene references, through includes, found as Mitsuba 3.9's parser does.
+
+    The parser gives each XML file a copy of the global file resolver with the file's folder in
+    front; a <path> (relative: found on that search path) goes in front of that. <include> and
+    <spectrum filename> resolve while parsing, so they see only the <path>s before them; plugins'
+    `filename` strings, an included file's too, resolve afterwards on the scene file's final search path.
+    """
+    import mitsuba as mi
+
+    strings: list[tuple[ET.Element, str, Path]] = []
+    resolver, found = _parsed_references(path, root, mi.file_resolver(), {}, strings, set())
+    return found + [_Reference(element, "value", name, _resolve(resolver, name, owner), owner)
+                    for element, name, owner in strings]
+
+
+def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str, str],
+                       strings: list, seen: set[Path]) -> tuple[object, list[_Reference]]:
+    """One file's parse-time references (and its includes'); its `filename` strings go to `strings`.
+
+    Returns the file's search path at its end, with the references in document order.
+    """
+    import mitsuba as mi
+
+    resolver = mi.FileResolver(outer)
+    resolver.prepend(str(path.parent))
+    defaults = {**_defaults(root), **inherited}  # a name's first <default> wins: the including file's
+    top_level = {id(child) for child in root}
     found = []
-    for element, attribute in _filename_slots(root):
-        name = _substitute(element.get(attribute, ""), defaults, path)
-        target = (path.parent / name).resolve()
-        if not target.is_file():
-            raise SceneError(f"{path}: referenced file {name!r} not found (looked for {target})")
-        found.append((element, attribute, target))
-        if element.tag == "include" and target not in seen:
-            seen.add(target)
-            found += _referenced_files(target, _parse(target), seen)
-    return found
+    for element in root.iter():
+        if element.tag == "path" and id(element) in top_level:
+            name = _substitute(element.get("value", ""), defaults, path)
+            folder = Path(name) if Path(name).is_absolute() else Path(str(resolver.resolve(name)))
+            if not folder.is_dir():
+                raise SceneError(f"{path}: <path> folder {name!r} not found (looked in {_search_list(resolver)})")
+            folder = folder.resolve()
+            resolver.prepend(str(folder))
+            found.append(_Reference(element, "value", name, folder, path))
+        elif element.tag == "string" and element.get("name") == "filename":
+            strings.append((element, _substitute(element.get("value", ""), defaults, path), path))
+        elif "filename" in element.attrib:  # <include>, <spectrum>
+            name = _substitute(element.get("filename", ""), defaults, path)
+            reference = _Reference(element, "filename", name, _resolve(resolver, name, path), path)
+            found.append(reference)
+            if element.tag == "include" and reference.target not in seen:
+                seen.add(reference.target)
+                found += _parsed_references(reference.target, _parse(reference.target), resolver, defaults,
+                                            strings, seen)[1]
+    return resolver, found
+
+
+def _resolve(resolver, name: str, owner: Path) -> Path:
+    target = Path(str(resolver.resolve(name)))
+    if not target.is_file():
+        raise SceneError(f"{owner}: referenced file {name!r} not found (looked in {_search_list(resolver)})")
+    return target.resolve()
+
+
+def _search_list(resolver) -> str:
+    """The folders the scene put on the search path (Mitsuba's own defaults after them are left out)."""
+    import mitsuba as mi
+
+    folders = [str(folder) for folder in resolver]
+    return ", ".join(folders[:len(folders) - len(list(mi.file_resolver()))])
 
 
 def _hdr_film(width: int, height: int) -> ET.Element:
@@ -108,10 +161,9 @@ def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
     root = _parse(path)
     sensors = _sensors(root, path)
     width, height = resolution if resolution is not None else xml_resolution(path)
-    own_slots = {id(element) for element, _ in _filename_slots(root)}
-    for element, attribute, target in _referenced_files(path, root):
-        if id(element) in own_slots:  # included files keep theirs; the resolver finds them
-            element.set(attribute, str(target))
+    for reference in _references(path, root):
+        if reference.owner == path:  # included files keep theirs; Mitsuba finds them the same way
+            reference.element.set(reference.attribute, str(reference.target))
     for sensor in sensors:
         for film in sensor.findall("film"):
             sensor.remove(film)
@@ -122,7 +174,8 @@ def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
 def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None):
     """Load a user scene with an hdrfilm + box filter at `resolution` (None keeps the XML's).
 
-    Included files may name files relative to themselves, so the scene's folder is also put on
+    Our own file names are absolute; included files keep theirs, which Mitsuba resolves on the
+    scene's search path (its folder first, as `mi.load_file` would), so the scene's folder is put on
     Mitsuba's (process-wide) file resolver for the duration of the load.
     """
     import mitsuba as mi
@@ -134,21 +187,40 @@ def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None):
     try:
         return mi.load_string(text, optimize=False)  # merging reorders shapes per load (see loading.py)
     except RuntimeError as error:
-        raise SceneError(f"{path}: Mitsuba could not load the scene: {error}") from error
+        problem = _AT_STRING.sub(lambda match: _element_at(text, match), _MITSUBA_SOURCE.sub("", str(error)))
+        raise SceneError(f"{path}: Mitsuba could not load the scene: {problem}") from error
     finally:
         mi.set_file_resolver(saved)
 
 
+def _element_at(text: str, match: re.Match) -> str:
+    """Mitsuba's line and column point into our rewritten XML, which the user never sees: name the
+    element there and the files it names instead."""
+    data = text.encode("utf-8")
+    line, column = int(match[1]), int(match[2])
+    offset = sum(len(row) + 1 for row in data.split(b"\n")[:line - 1]) + column - 1  # at the tag's name
+    index = len(re.findall(rb"<(?![/!?])", data[:offset])) - 1  # elements start in document order
+    elements = list(ET.fromstring(text).iter())
+    if not 0 <= index < len(elements):
+        return ""
+    element = elements[index]
+    files = [e.get("value", "") for e in element.iter() if e.tag == "string" and e.get("name") == "filename"]
+    files += [e.get("filename", "") for e in element.iter() if "filename" in e.attrib]
+    return f"<{element.tag}> naming {', '.join(files)}: " if files else ""  # Mitsuba's message names the plugin
+
+
 def xml_content_bytes(path: str | Path, resolution: tuple[int, int] | None) -> bytes:
-    """The XML bytes, each referenced file's name and bytes (in document order), and the film size."""
+    """The XML bytes, the name and bytes of each file Mitsuba will load for it, and the film size."""
     path = Path(path).resolve()
     root = _parse(path)
     _sensors(root, path)
     size = resolution if resolution is not None else xml_resolution(path)
     parts = [b"xml;%d;" % path.stat().st_size, path.read_bytes()]
-    for element, attribute, target in _referenced_files(path, root):
-        name = element.get(attribute, "").encode("utf-8")
-        data = target.read_bytes()
+    for reference in _references(path, root):
+        if reference.element.tag == "path":
+            continue  # a search folder: the files found through it count, not the folder
+        name = reference.name.encode("utf-8")
+        data = reference.target.read_bytes()
         parts += [b"file;%d;" % len(name), name, b"%d;" % len(data), data]
     parts.append(b"resolution;%d;%d" % (int(size[0]), int(size[1])))
     return b"".join(parts)
@@ -163,26 +235,63 @@ def _is_scene_file(path: Path) -> bool:
     return root.tag == "scene" and next(root.iter("sensor"), None) is not None
 
 
-def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None) -> list[SceneSpec]:
+def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
+               left_out: list[SceneError] | None = None) -> list[SceneSpec]:
     """One spec per XML scene in each folder: `*.xml` in the folder and in its direct subfolders.
 
     A file counts as a scene when its root is <scene> and it has a <sensor>; fragments pulled in
     by <include> have none and are skipped. A subfolder holding one scene is named after the folder.
+    Each scene is checked as far as its render would check it (XML, film size, every referenced
+    file). A file that fails raises its SceneError or, when `left_out` is a list, is left out and
+    its error appended there: one broken file then does not hold up the other scenes.
     """
     specs: dict[str, SceneSpec] = {}
+    problems: list[SceneError] = []
     for folder in map(Path, dirs):
         if not folder.is_dir():
             raise SceneError(f"{folder}: scene folder not found")
-        found: list[tuple[str, Path]] = [(path.stem, path) for path in sorted(folder.glob("*.xml")) if _is_scene_file(path)]
-        for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
-            scenes = [path for path in sorted(sub.glob("*.xml")) if _is_scene_file(path)]
-            found += [(sub.name if len(scenes) == 1 else f"{sub.name}-{path.stem}", path) for path in scenes]
-        if not found:
+        found, broken = _scene_files(folder)
+        if not found and not broken:
             raise SceneError(f"{folder}: no Mitsuba scene (an .xml file with a <sensor>) in this folder or its subfolders")
+        problems += broken
         for name, path in found:
             scene_id = _scene_id(name)
             if scene_id in specs:
                 raise SceneError(f"{path}: scene id {scene_id!r} is already taken by {specs[scene_id].xml_path}")
-            size = tuple(resolution) if resolution is not None else xml_resolution(path)
-            specs[scene_id] = SceneSpec(scene_id, XML_FAMILY, 0, size, str(path.resolve()))
+            try:
+                specs[scene_id] = _checked_spec(scene_id, path, resolution)
+            except SceneError as error:
+                problems.append(error)
+    if problems:
+        if left_out is None:
+            raise problems[0]
+        left_out.extend(problems)
     return list(specs.values())
+
+
+def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]]:
+    """(name, path) of the scenes in a folder and its direct subfolders, and the files that do not parse."""
+    broken: list[SceneError] = []
+
+    def scenes_in(where: Path) -> list[Path]:
+        scenes = []
+        for path in sorted(where.glob("*.xml")):
+            try:
+                if _is_scene_file(path):
+                    scenes.append(path)
+            except SceneError as error:
+                broken.append(error)
+        return scenes
+
+    found = [(path.stem, path) for path in scenes_in(folder)]
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
+        scenes = scenes_in(sub)
+        found += [(sub.name if len(scenes) == 1 else f"{sub.name}-{path.stem}", path) for path in scenes]
+    return found, broken
+
+
+def _checked_spec(scene_id: str, path: Path, resolution: tuple[int, int] | None) -> SceneSpec:
+    """A scene file's spec, once its film size reads and every file it references is found."""
+    size = tuple(resolution) if resolution is not None else xml_resolution(path)
+    _references(path, _parse(path))
+    return SceneSpec(scene_id, XML_FAMILY, 0, size, str(path.resolve()))
