@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from admc.errors import AdmcError
@@ -35,6 +35,7 @@ class StageResult:
     executed: int
     cached: int
     tasks: list[Task]              # every task of the run, upstream included (for their manifests)
+    retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
 
 
 def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
@@ -88,7 +89,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
         if missing:
             raise StageError(f"{len(missing)} renders are missing (e.g. {missing[0]}): run `admc-pipe render` "
                              "or `admc-pipe dataset` first")
-    tiles = []
+    tiles, retiled = [], []
     for spec in specs:
         levels = renders[spec.scene_id]
         split = tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed)
@@ -98,15 +99,26 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "scene_hash": levels["reference"].params["scene_hash"],
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
                         "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed})
-        if cache.is_done(task) and not patches.has_scene(store_path, split, spec.scene_id):
-            cache.forget(task)  # the store lost this scene (deleted or moved): tile it again
+        if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled):
+            cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders
         tiles.append(task)
     published, cached = run_cached(cfg, tiles, progress)
     renders_dir = render.link_renders(renders, published, Path(cfg.run.workdir) / "renders")
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
     return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,
-                       len(everything) - cached, cached, everything)
+                       len(everything) - cached, cached, everything, retiled)
+
+
+def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) -> bool:
+    """Whether a tiled scene is published and its files match their checksums; damaged ones are
+    described in `damaged` ("split/scene (arrays)") so the user learns what was repaired."""
+    if not patches.has_scene(store, split, scene_id):
+        return False
+    arrays = patches.damaged_arrays(store, split, scene_id)
+    if arrays:
+        damaged.append(f"{split}/{scene_id} ({', '.join(arrays)})")
+    return not arrays
 
 
 def existing_dataset(cfg: Config) -> StageResult:

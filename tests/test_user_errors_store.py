@@ -1,0 +1,78 @@
+"""User errors around the patch store, as `admc-pipe` reports them: a damaged chunk, a patch size the
+images cannot hold or the critic cannot take, a leftover empty store, a split that leaves training
+without scenes. Each is one message naming the store/scene/array or config key, no traceback."""
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import build_tiny_store, tiny_store_overrides
+from admc.stores import patches
+
+ADMC = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "admc-pipe")
+
+
+def admc(*args, overrides=()):
+    sets = [item for value in overrides for item in ("--set", value)]
+    return subprocess.run([ADMC, *args, *sets], capture_output=True, text=True, timeout=300)
+
+
+def flip_bytes(file: Path, offset: int, count: int = 8) -> None:
+    """Invert `count` bytes at `offset` (negative: from the end), as a failing disk or a bad copy would."""
+    data = bytearray(file.read_bytes())
+    start = offset % len(data)
+    data[start:start + count] = bytes(b ^ 0xFF for b in data[start:start + count])
+    file.write_bytes(bytes(data))
+
+
+def shard(store: Path, split: str, scene: str, array: str) -> Path:
+    (file,) = [p for p in (store / split / scene / array / "c").rglob("*") if p.is_file()]
+    return file
+
+
+@pytest.fixture
+def tiny(tmp_path, variant):
+    """(store, the overrides that built it, a scene of its train split)."""
+    overrides = tiny_store_overrides(tmp_path / "w", size=32, patch=32)
+    store = build_tiny_store(tmp_path / "w", size=32, patch=32)
+    return store, overrides, patches.list_scenes(store, "train")[0]
+
+
+def test_a_damaged_chunk_is_named_and_dataset_tiles_that_scene_again(tiny):
+    store, overrides, scene = tiny
+    before = np.asarray(patches.PatchReader(store, "train")[0]["noisy"])
+    # Bytes inside a compressed chunk: zarr decodes them to wrong values without any error.
+    flip_bytes(shard(store, "train", scene, "noisy_diffuse"), 100)
+
+    out = admc("dataset", "--summary", overrides=overrides)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    message = " ".join(out.stderr.split())
+    assert f"patch store {store}: scene train/{scene}, array noisy_diffuse:" in message
+    assert "checksums" in message and "run `admc-pipe dataset` with the same config" in message
+
+    out = admc("dataset", overrides=overrides)
+    assert out.returncode == 0, out.stderr
+    assert "1 tasks run" in out.stdout, "only the damaged scene's tile task; its renders are cached"
+    assert f"re-tiled damaged scenes from their cached renders: train/{scene} (noisy_diffuse)" in out.stdout
+    assert patches.damaged_arrays(store, "train", scene) == []
+    np.testing.assert_array_equal(patches.PatchReader(store, "train")[0]["noisy"], before)
+
+    again = admc("dataset", overrides=overrides)
+    assert again.returncode == 0 and "0 tasks run" in again.stdout and "re-tiled" not in again.stdout
+
+
+def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_path):
+    from admc.model.settings import small_settings
+    from admc.model.trainer import train
+    from dataclasses import replace
+
+    store, _, scene = tiny
+    flip_bytes(shard(store, "train", scene, "features"), -10)  # the shard index: zarr's crc32c refuses it
+    model, settings = small_settings()
+    settings = replace(settings, steps=2, val_every=0, branches=("diffuse",), l1_warmup_steps=2)
+    with pytest.raises(patches.PatchStoreError) as caught:
+        train(store, tmp_path / "run", settings, replace(model, channels=4, blocks=1), progress=False)
+    assert str(caught.value).startswith(f"patch store {store}: scene train/{scene}, array features: cannot be decoded")
+    assert "admc-pipe dataset" in str(caught.value)
+
