@@ -8,9 +8,10 @@ from pathlib import Path
 from admc.errors import AdmcError
 import admc
 from admc.model import transforms
+from admc.model.critic import DOWNSAMPLING
 from admc.pipeline import render, runner, tile
 from admc.pipeline.cache import StageCache, Task, code_version
-from admc.pipeline.config import Config
+from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.scenes import SceneSpec
 from admc.stores import patches
 
@@ -80,6 +81,7 @@ def store_attributes(cfg: Config) -> dict:
 def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = True) -> StageResult:
     """Render + tile as one graph: each scene's tile task depends on its render tasks."""
     specs = render.corpus(cfg)
+    check_patch_fits(cfg, specs)
     renders = render.render_tasks(cfg, specs)
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
@@ -119,6 +121,25 @@ def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) ->
     if arrays:
         damaged.append(f"{split}/{scene_id} ({', '.join(arrays)})")
     return not arrays
+
+
+def check_patch_fits(cfg: Config, specs: list[SceneSpec]) -> None:
+    """Refuse a tile.patch_size larger than a scene's image before anything is rendered or created."""
+    patch = cfg.tile.patch_size
+    for spec in specs:
+        width, height = spec.resolution
+        if patch <= min(width, height):
+            continue
+        largest = min(width, height) // DOWNSAMPLING * DOWNSAMPLING
+        fix = [f"use at most {largest}"] if largest else []
+        if spec.is_xml and cfg.corpus.xml_resolution == "film":
+            source = f"scene {spec.xml_path} renders at its film's {width}x{height} (corpus.xml_resolution = film)"
+            fix.append("set corpus.xml_resolution = render")
+        else:
+            source = f"render.resolution is {width}x{height}"
+            fix.append("raise render.resolution")
+        raise ConfigError(f"config key 'tile.patch_size': {patch} is larger than the image, {source}; "
+                          f"{' or '.join(fix)}")
 
 
 def existing_dataset(cfg: Config) -> StageResult:

@@ -165,10 +165,12 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
     if (path / "zarr.json").is_file():
         existing = dict(_open_root(path).attrs)
         diff = _differences(existing, full)
-        if diff:
+        if diff and any(list_scenes(path, split) for split in SPLITS):
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
                 f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r})")
+        if diff:  # no scene was ever published: nothing pins the old settings
+            zarr.open_group(store=LocalStore(path), mode="r+").attrs.put(full)
         return
     root = zarr.open_group(store=LocalStore(path), mode="a", attributes=full)
     for name in (*SPLITS, STAGING):

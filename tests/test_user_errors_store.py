@@ -76,3 +76,51 @@ def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_
     assert str(caught.value).startswith(f"patch store {store}: scene train/{scene}, array features: cannot be decoded")
     assert "admc-pipe dataset" in str(caught.value)
 
+
+def test_a_patch_larger_than_the_render_is_refused_before_anything_is_created(tmp_path):
+    overrides = tiny_store_overrides(tmp_path / "w", size=32, patch=64)
+    out = admc("dataset", overrides=overrides)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert ("config key 'tile.patch_size': 64 is larger than the image, render.resolution is 32x32; use at most 32 "
+            "or raise render.resolution"
+            in " ".join(out.stderr.split()))
+    assert not (tmp_path / "w").exists(), "nothing rendered, no store created"
+
+
+def test_a_patch_larger_than_an_xml_film_names_the_scene_file(tmp_path):
+    from test_scenes import write_kitchen_scene
+
+    xml = write_kitchen_scene(tmp_path / "my_scenes")  # a 40x30 film
+    out = admc("dataset", overrides=[f"run.workdir='{tmp_path / 'w'}'", "corpus.n_scenes=0",
+                                     f"corpus.xml_dirs=['{xml.parent}']", "corpus.xml_resolution='film'",
+                                     "tile.patch_size=32"])
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert (f"config key 'tile.patch_size': 32 is larger than the image, scene {xml} renders at its film's 40x30 "
+            "(corpus.xml_resolution = film); set corpus.xml_resolution = render" in " ".join(out.stderr.split()))
+    assert not (tmp_path / "w").exists()
+
+
+def test_an_empty_store_left_by_a_failed_run_does_not_pin_its_patch_size(tmp_path, variant):
+    from admc.pipeline.config import load_config
+    from admc.pipeline.stages import store_attributes
+
+    overrides = tiny_store_overrides(tmp_path / "w", size=32, patch=32)
+    store = tmp_path / "w" / "patches.zarr"
+    old = load_config(None, tiny_store_overrides(tmp_path / "w", size=32, patch=128))
+    patches.create_store(store, store_attributes(old))  # what a run that failed before tiling left behind
+    out = admc("dataset", overrides=overrides)
+    assert out.returncode == 0, out.stderr
+    assert patches.PatchReader(store, "train").attrs["patch_size"] == 32
+    # once it holds scenes, a store keeps its settings
+    out = admc("dataset", overrides=[*overrides, "tile.crops_per_scene=2"])
+    assert out.returncode == 2 and "existing store differs in tile.crops_per_scene" in out.stderr
+
+
+@pytest.mark.parametrize("command", ["dataset", "train"])
+def test_a_patch_size_the_critic_cannot_take_is_refused_when_the_config_loads(tmp_path, command):
+    out = admc(command, overrides=tiny_store_overrides(tmp_path / "w", size=32, patch=16))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert ("config key 'tile.patch_size': must be a multiple of 32 (the critic halves it 5 times), got 16"
+            in " ".join(out.stderr.split()))
+    assert not (tmp_path / "w").exists()
+
