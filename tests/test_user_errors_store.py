@@ -124,3 +124,11 @@ def test_a_patch_size_the_critic_cannot_take_is_refused_when_the_config_loads(tm
             in " ".join(out.stderr.split()))
     assert not (tmp_path / "w").exists()
 
+
+def test_train_refuses_a_split_without_validation_scenes_before_rendering(tmp_path):
+    out = admc("train", overrides=[*tiny_store_overrides(tmp_path / "w", size=32, patch=32), "tile.split=[1.0, 0.0, 0.0]"])
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    message = " ".join(out.stderr.split())
+    assert ("config key 'tile.split': no scene of the 4-scene corpus (tile.split = [1.0, 0.0, 0.0], tile.seed = 17) "
+            "falls in the val split, which train.val_every = 100 validates on" in message)
+    assert not (tmp_path / "w").exists()
