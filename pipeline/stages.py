@@ -38,6 +38,11 @@ class StageResult:
     tasks: list[Task]              # every task of the run, upstream included (for their manifests)
     retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
 
+    @property
+    def notes(self) -> list[str]:
+        """What the user should hear about besides the counts."""
+        return [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
+
 
 def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
     """Run tasks (and what they depend on) through the stage cache; return published paths and how many were cached."""

@@ -54,8 +54,10 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
         raise StageError(f"{init_from}: no such checkpoint or weights file")
     check_splits(cfg)
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
-    return train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
-                 init_from=None if resume else init_from, resume=resume, progress=progress)
+    result = train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
+                   init_from=None if resume else init_from, resume=resume, progress=progress)
+    result.notes[:0] = dataset.notes
+    return result
 
 
 def check_splits(cfg: Config) -> None:

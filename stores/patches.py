@@ -168,7 +168,8 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
         if diff and any(list_scenes(path, split) for split in SPLITS):
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
-                f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r})")
+                f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r}); "
+                "its scenes were tiled with those settings: use another store (tile.store) or move this one away")
         if diff:  # no scene was ever published: nothing pins the old settings
             zarr.open_group(store=LocalStore(path), mode="r+").attrs.put(full)
         return

@@ -62,6 +62,14 @@ def test_a_damaged_chunk_is_named_and_dataset_tiles_that_scene_again(tiny):
     assert again.returncode == 0 and "0 tasks run" in again.stdout and "re-tiled" not in again.stdout
 
 
+def test_train_tiles_a_damaged_scene_again_before_training_and_says_so(tiny):
+    store, overrides, scene = tiny
+    flip_bytes(shard(store, "train", scene, "ref_diffuse"), 100)
+    out = admc("train", overrides=[*overrides, "train.steps=2", "train.val_every=0"])
+    assert out.returncode == 0, out.stderr
+    assert f"re-tiled damaged scenes from their cached renders: train/{scene} (ref_diffuse)" in out.stdout
+    assert patches.damaged_arrays(store, "train", scene) == []
+
 def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_path):
     from admc.model.settings import small_settings
     from admc.model.trainer import train
@@ -113,7 +121,9 @@ def test_an_empty_store_left_by_a_failed_run_does_not_pin_its_patch_size(tmp_pat
     assert patches.PatchReader(store, "train").attrs["patch_size"] == 32
     # once it holds scenes, a store keeps its settings
     out = admc("dataset", overrides=[*overrides, "tile.crops_per_scene=2"])
-    assert out.returncode == 2 and "existing store differs in tile.crops_per_scene" in out.stderr
+    message = " ".join(out.stderr.split())
+    assert out.returncode == 2 and "existing store differs in tile.crops_per_scene" in message
+    assert "use another store (tile.store) or move this one away" in message
 
 
 @pytest.mark.parametrize("command", ["dataset", "train"])
@@ -126,7 +136,8 @@ def test_a_patch_size_the_critic_cannot_take_is_refused_when_the_config_loads(tm
 
 
 def test_train_refuses_a_split_without_validation_scenes_before_rendering(tmp_path):
-    out = admc("train", overrides=[*tiny_store_overrides(tmp_path / "w", size=32, patch=32), "tile.split=[1.0, 0.0, 0.0]"])
+    overrides = [*tiny_store_overrides(tmp_path / "w", size=32, patch=32), "tile.split=[1.0, 0.0, 0.0]"]
+    out = admc("train", overrides=overrides)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     message = " ".join(out.stderr.split())
     assert ("config key 'tile.split': no scene of the 4-scene corpus (tile.split = [1.0, 0.0, 0.0], tile.seed = 17) "
