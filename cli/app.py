@@ -80,6 +80,8 @@ def _print_dataset(result, summary_only: bool = False) -> None:
     from admc.pipeline.dataset_report import contact_sheet
     from admc.stores.patches import store_summary
 
+    for note in result.notes:
+        console.print(note, markup=False)
     summary = store_summary(result.store)
     table = Table(title=f"patch store {result.store}")
     for column in ("split", "scenes", "diffuse rows", "specular rows", "rows per spp"):

@@ -14,6 +14,7 @@ from importlib import resources
 from pathlib import Path
 
 from admc.errors import AdmcError
+from admc.model.critic import DOWNSAMPLING
 from admc.model.settings import ModelSettings, TrainSettings
 
 
@@ -73,7 +74,9 @@ class TileConfig:
     seed: int
 
     def check(self) -> None:
-        _require(self.patch_size >= 8, "tile.patch_size", f"must be >= 8, got {self.patch_size}")
+        # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built
+        _require(self.patch_size >= DOWNSAMPLING and self.patch_size % DOWNSAMPLING == 0, "tile.patch_size",
+                 f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}")
         _require(self.crops_per_scene >= 1, "tile.crops_per_scene", "must be >= 1")
         _require(self.candidates_per_crop >= 1, "tile.candidates_per_crop", "must be >= 1")
         _require(all(f >= 0 for f in self.split) and sum(self.split) > 0, "tile.split",

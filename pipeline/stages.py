@@ -2,15 +2,16 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from admc.errors import AdmcError
 import admc
 from admc.model import transforms
+from admc.model.critic import DOWNSAMPLING
 from admc.pipeline import render, runner, tile
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
-from admc.pipeline.config import Config
+from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.scenes import SceneError, SceneSpec
 from admc.stores import patches
 
@@ -35,6 +36,12 @@ class StageResult:
     executed: int
     cached: int
     tasks: list[Task]              # every task of the run, upstream included (for their manifests)
+    retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
+
+    @property
+    def notes(self) -> list[str]:
+        """What the user should hear about besides the counts."""
+        return [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
 
 
 def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
@@ -104,6 +111,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     """Render + tile as one graph: each scene's tile task depends on its render tasks (failures: see render_corpus)."""
     left_out: list[SceneError] = []
     specs = render.corpus(cfg, left_out)
+    check_patch_fits(cfg, specs)
     renders = render.render_tasks(cfg, specs)
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
@@ -113,7 +121,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
         if missing:
             raise StageError(f"{len(missing)} renders are missing (e.g. {missing[0]}): run `admc-pipe render` "
                              "or `admc-pipe dataset` first")
-    tiles = []
+    tiles, retiled = [], []
     for spec in specs:
         levels = renders[spec.scene_id]
         split = tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed)
@@ -124,14 +132,44 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
                         "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed},
                     source=render.scene_source(spec))
-        if cache.is_done(task) and not patches.has_scene(store_path, split, spec.scene_id):
-            cache.forget(task)  # the store lost this scene (deleted or moved): tile it again
+        if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled):
+            cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders
         tiles.append(task)
     published, cached, renders_dir = _run_corpus(cfg, tiles, renders, left_out, progress)
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
     return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,
-                       len(everything) - cached, cached, everything)
+                       len(everything) - cached, cached, everything, retiled)
+
+
+def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) -> bool:
+    """Whether a tiled scene is published and its files match their checksums; damaged ones are
+    described in `damaged` ("split/scene (arrays)") so the user learns what was repaired."""
+    if not patches.has_scene(store, split, scene_id):
+        return False
+    arrays = patches.damaged_arrays(store, split, scene_id)
+    if arrays:
+        damaged.append(f"{split}/{scene_id} ({', '.join(arrays)})")
+    return not arrays
+
+
+def check_patch_fits(cfg: Config, specs: list[SceneSpec]) -> None:
+    """Refuse a tile.patch_size larger than a scene's image before anything is rendered or created."""
+    patch = cfg.tile.patch_size
+    for spec in specs:
+        width, height = spec.resolution
+        if patch <= min(width, height):
+            continue
+        largest = min(width, height) // DOWNSAMPLING * DOWNSAMPLING
+        fix = [f"use at most {largest}"] if largest else []
+        if spec.is_xml and cfg.corpus.xml_resolution == "film":
+            source = f"scene {spec.xml_path} renders at its film's {width}x{height} (corpus.xml_resolution = film)"
+            fix.append("set corpus.xml_resolution = render")
+        else:
+            source = f"render.resolution is {width}x{height}"
+            fix.append("raise render.resolution")
+        raise ConfigError(f"config key 'tile.patch_size': {patch} is larger than the image, {source}; "
+                          f"{' or '.join(fix)}")
 
 
 def existing_dataset(cfg: Config) -> StageResult:

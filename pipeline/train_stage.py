@@ -3,12 +3,14 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import admc
 from admc.model.settings import ModelSettings
 from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
-from admc.pipeline.config import Config
+from admc.pipeline import render, tile
+from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.stages import StageError, build_dataset
 
 WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
@@ -49,9 +51,27 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
                              "match this [model] config")
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
+    check_splits(cfg)
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
-    return train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
-                 init_from=None if resume else init_from, resume=resume, progress=progress)
+    result = train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
+                   init_from=None if resume else init_from, resume=resume, progress=progress)
+    result.notes[:0] = dataset.notes
+    return result
+
+
+def check_splits(cfg: Config) -> None:
+    """Refuse, before anything is rendered, a tile.split that leaves training (or validation, with
+    train.val_every > 0) without a single scene of the corpus."""
+    specs = render.corpus(cfg)
+    counts = Counter(tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) for s in specs)
+    corpus = f"the {len(specs)}-scene corpus (tile.split = {list(cfg.tile.split)}, tile.seed = {cfg.tile.seed})"
+    if not counts["train"]:
+        raise ConfigError(f"config key 'tile.split': no scene of {corpus} falls in the train split; "
+                          "give train a larger share or add scenes")
+    if cfg.train.val_every and not counts["val"]:
+        raise ConfigError(f"config key 'tile.split': no scene of {corpus} falls in the val split, which "
+                          f"train.val_every = {cfg.train.val_every} validates on; give val a share, add scenes, "
+                          "or set train.val_every = 0")
 
 
 def default_weights(cfg: Config) -> Path:

@@ -6,7 +6,8 @@ Layout (LocalStore directory):
       _staging/                scenes being written (and replaced scenes being deleted); never read
       train/ val/ test/        one group per split
         <scene_id>/            one group per scene, written by one task; attrs: scene_id, scene_hash,
-                               has_specular, image_size, sanitization, n_rows, n_crops
+                               has_specular, image_size, sanitization, n_rows, n_crops,
+                               checksums (sha256 of each array's files, as written)
           noisy_diffuse  (n, 3, P, P) f16   one row per (crop, spp)
           noisy_specular (n, 3, P, P) f16   only for scenes with specular
           features       (n, 7, P, P) f16   rendered at the row's spp, so per row
@@ -24,16 +25,20 @@ under `_staging/` and renamed into its split last, so a killed writer never leav
 visible. References are stored once per crop and indexed by `crop`, which saves (k-1)/k of the
 reference bytes for k spp levels; the index arrays are tiny and read once per scene.
 Image arrays have chunks of exactly one patch (a random read decodes one patch) grouped into
-shards of up to SHARD_PATCHES patches (few files per scene).
+shards of up to SHARD_PATCHES patches (few files per scene). Zarr checksums only a shard's index:
+flipped bytes inside a compressed chunk mostly decode to wrong values without any error, so each
+scene records a checksum per array and `damaged_arrays` compares them.
 """
 from __future__ import annotations
 
 import bisect
+import hashlib
 import json
 import os
 import re
 import shutil
 import uuid
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +75,25 @@ LAYOUT = {
 
 class PatchStoreError(AdmcError, ValueError):
     """A patch store is missing, malformed, or does not match what the caller expects."""
+
+
+_RECOVERY = "run `admc-pipe dataset` with the same config: it re-tiles the damaged scene from its cached renders"
+
+
+def _damage_error(path: Path, split: str, scene_id: str, arrays: list[str], cause: str) -> PatchStoreError:
+    """The one message for a damaged scene: store, split/scene, arrays, what is wrong, how to recover."""
+    return PatchStoreError(f"patch store {path}: scene {split}/{scene_id}, array {', '.join(arrays)}: {cause}; "
+                           f"{_RECOVERY}")
+
+
+@contextmanager
+def _reading(path: Path, split: str, scene_id: str, array: str):
+    """A damaged file (a shard index checksum, a codec or JSON error, a truncated chunk) fails with
+    the store, scene and array named instead of the codec's own words."""
+    try:
+        yield
+    except Exception as exc:
+        raise _damage_error(path, split, scene_id, [array], f"cannot be decoded ({type(exc).__name__})") from exc
 
 
 def _compressor() -> BloscCodec:
@@ -141,10 +165,13 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
     if (path / "zarr.json").is_file():
         existing = dict(_open_root(path).attrs)
         diff = _differences(existing, full)
-        if diff:
+        if diff and any(list_scenes(path, split) for split in SPLITS):
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
-                f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r})")
+                f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r}); "
+                "its scenes were tiled with those settings: use another store (tile.store) or move this one away")
+        if diff:  # no scene was ever published: nothing pins the old settings
+            zarr.open_group(store=LocalStore(path), mode="r+").attrs.put(full)
         return
     root = zarr.open_group(store=LocalStore(path), mode="a", attributes=full)
     for name in (*SPLITS, STAGING):
@@ -217,6 +244,29 @@ def _write_group(directory: Path, arrays: dict[str, np.ndarray], attrs: dict) ->
             arr = group.create_array(name, shape=data.shape, dtype="int32", chunks=data.shape,
                                      compressors=_compressor(), fill_value=0)
         arr[...] = data
+    group.attrs["checksums"] = {name: _array_digest(directory / name) for name in arrays}
+
+
+def _array_digest(directory: Path) -> str:
+    """sha256 over an array's files (names and bytes): changes with any flipped, lost or added byte."""
+    digest = hashlib.sha256()
+    for file in sorted(p for p in directory.rglob("*") if p.is_file()):
+        digest.update(file.relative_to(directory).as_posix().encode() + b"\0")
+        digest.update(file.read_bytes())
+    return digest.hexdigest()
+
+
+def damaged_arrays(path: str | os.PathLike, split: str, scene_id: str) -> list[str]:
+    """Arrays of a published scene whose files differ from the checksums recorded when it was written
+    ("zarr.json" when the scene's own metadata is unreadable). Reads every file of the scene once.
+    Scenes written before checksums were recorded have nothing to compare: [].
+    """
+    directory = Path(path) / split / scene_id
+    try:
+        checksums = json.loads((directory / "zarr.json").read_bytes())["attributes"].get("checksums", {})
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return ["zarr.json"]
+    return [name for name, digest in sorted(checksums.items()) if _array_digest(directory / name) != digest]
 
 
 def write_scene(path: str | os.PathLike, split: str, scene_id: str, arrays: dict[str, np.ndarray],
@@ -335,12 +385,14 @@ class PatchReader:
         self._starts: list[int] = []
         total = 0
         for scene in list_scenes(self.path, split):
-            group = root[f"{split}/{scene}"]
-            if branch == "specular" and not group.attrs["has_specular"]:
-                continue
+            with _reading(self.path, split, scene, "zarr.json"):
+                group = root[f"{split}/{scene}"]
+                if branch == "specular" and not group.attrs["has_specular"]:
+                    continue
             self.scenes.append(scene)
-            self._spp.append(group["spp"][...])
-            self._crop.append(group["crop"][...])
+            for name, out in (("spp", self._spp), ("crop", self._crop)):
+                with _reading(self.path, split, scene, name):
+                    out.append(group[name][...])
             self._starts.append(total)
             total += len(self._spp[-1])
         self._len = total
@@ -378,12 +430,16 @@ class PatchReader:
         scene = self.scenes[k]
         crop = int(self._crop[k][row])
         return {
-            "noisy": self._array(scene, f"noisy_{self.branch}")[row].astype(np.float32),
-            "features": self._array(scene, "features")[row].astype(np.float32),
-            "reference": self._array(scene, f"ref_{self.branch}")[crop].astype(np.float32),
+            "noisy": self._patch(scene, f"noisy_{self.branch}", row),
+            "features": self._patch(scene, "features", row),
+            "reference": self._patch(scene, f"ref_{self.branch}", crop),
             "spp": int(self._spp[k][row]),
             "scene": scene,
         }
+
+    def _patch(self, scene: str, name: str, index: int) -> np.ndarray:
+        with _reading(self.path, self.split, scene, name):
+            return self._array(scene, name)[index].astype(np.float32)
 
 
 def _add_counts(total: dict, counts: Any) -> None:
@@ -410,6 +466,9 @@ def store_summary(path: str | os.PathLike) -> dict:
         entry: dict[str, Any] = {"scenes": [], "rows": {b: 0 for b in BRANCHES}, "crops": 0,
                                  "rows_per_spp": {}, "ranges": {}}
         for scene in list_scenes(path, split):
+            damaged = damaged_arrays(path, split, scene)
+            if damaged:
+                raise _damage_error(path, split, scene, damaged, "its files differ from the checksums written with it")
             group = root[f"{split}/{scene}"]
             entry["scenes"].append(scene)
             n = int(group.attrs["n_rows"])
@@ -420,7 +479,8 @@ def store_summary(path: str | os.PathLike) -> dict:
                 entry["rows_per_spp"][int(spp)] = entry["rows_per_spp"].get(int(spp), 0) + int(count)
             for name in (*ROW_IMAGES, *CROP_IMAGES):
                 if name in group:
-                    values = group[name][...]
+                    with _reading(path, split, scene, name):
+                        values = group[name][...]
                     lo, hi = float(values.min()), float(values.max())
                     old = entry["ranges"].get(name, (lo, hi))
                     entry["ranges"][name] = (min(old[0], lo), max(old[1], hi))

@@ -22,12 +22,17 @@ def one_torch_thread():
     torch.set_num_threads(previous)
 
 
+def tiny_store_overrides(workdir, size: int, patch: int) -> list[str]:
+    """The `--set` values of a 4-scene corpus rendered at size x size (seconds to build)."""
+    return [f"run.workdir='{workdir}'", "run.scheduler=sync", f"render.resolution=[{size}, {size}]",
+            "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
+            f"tile.patch_size={patch}", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"]
+
+
 def build_tiny_store(workdir, size: int, patch: int):
     """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data."""
     from admc.pipeline.config import load_config
     from admc.pipeline.stages import build_dataset
 
-    cfg = load_config(None, [f"run.workdir='{workdir}'", "run.scheduler=sync", f"render.resolution=[{size}, {size}]",
-                             "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-                             f"tile.patch_size={patch}", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"])
+    cfg = load_config(None, tiny_store_overrides(workdir, size, patch))
     return build_dataset(cfg, progress=False).store

@@ -13,7 +13,7 @@ from admc.stores.patches import PatchReader
 @pytest.fixture(scope="module")
 def store(tmp_path_factory, variant):
     tmp = tmp_path_factory.mktemp("data_store")
-    return build_tiny_store(tmp, size=32, patch=16)
+    return build_tiny_store(tmp, size=32, patch=32)
 
 
 def sphere_features(height: int, width: int, cy: float, cx: float, radius: float) -> np.ndarray:
@@ -110,7 +110,7 @@ def test_dataset_items_are_augmented_store_rows(store):
     np.testing.assert_array_equal(item["noisy"].numpy(), augment(raw["noisy"], 5))
     np.testing.assert_array_equal(item["reference"].numpy(), augment(raw["reference"], 5))
     np.testing.assert_array_equal(item["features"].numpy(), augment(raw["features"], 5, normals=True))
-    assert item["noisy"].dtype == torch.float32 and item["noisy"].shape == (3, 16, 16)
+    assert item["noisy"].dtype == torch.float32 and item["noisy"].shape == (3, 32, 32)
 
 
 def test_loader_batches_do_not_depend_on_workers(store):
@@ -129,13 +129,13 @@ def test_loader_batches_do_not_depend_on_workers(store):
         for key in ("noisy", "features", "reference"):
             assert torch.equal(a[key], b[key])
     assert torch.equal(serial[1]["noisy"], resumed[0]["noisy"])
-    assert serial[0]["noisy"].shape == (4, 3, 16, 16)
+    assert serial[0]["noisy"].shape == (4, 3, 32, 32)
     assert all(torch.isfinite(b[k]).all() for b in serial for k in b)
 
 
 def test_validation_rows_and_fingerprint(store):
     rows = load_rows(PatchReader(store, "val"), 5)
-    assert rows["features"].shape == (5, 7, 16, 16)
+    assert rows["features"].shape == (5, 7, 32, 32)
     with pytest.raises(ValueError, match="split 'test' has no diffuse patches"):
         load_rows(PatchReader(store, "test"), 5)
     assert store_fingerprint(store) == store_fingerprint(store)

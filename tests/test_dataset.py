@@ -17,9 +17,9 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 def tiny(workdir, n_scenes):
     return load_config(None, [
-        f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2, 4]",
+        f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]",
         "render.reference_spp=16", "corpus.families=['room', 'tabletop']", f"corpus.n_scenes={n_scenes}",
-        "tile.patch_size=16", "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"])
+        "tile.patch_size=32", "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"])
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_store_rows_equal_the_transformed_exr_crops(built):
             row = scene[i]
             y, x = _origin(result.store, group, scene.locate(i)[1])
             layers = exr.read_exr(result.renders_dir / summary["scene_id"] / f"spp{row['spp']:04d}.exr")
-            crop = (slice(y, y + 16), slice(x, x + 16))
+            crop = (slice(y, y + 32), slice(x, x + 32))
             want = tf.diffuse_forward(layers["diffuse"], layers["albedo"])[crop].transpose(2, 0, 1)
             np.testing.assert_array_equal(row["noisy"], want.astype(np.float16).astype(np.float32))
             feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
@@ -73,7 +73,7 @@ def test_store_attributes_invert_the_reference(built):
         stored = group["ref_diffuse"][int(group["crop"][row])].astype(np.float32).transpose(1, 2, 0)
         albedo = group["features"][row][4:7].astype(np.float32).transpose(1, 2, 0)  # the row's own albedo
         back = tf.diffuse_inverse(stored, albedo)
-        want = reference["diffuse"][y:y + 16, x:x + 16]
+        want = reference["diffuse"][y:y + 32, x:x + 32]
         np.testing.assert_allclose(back, want, rtol=2e-3, atol=2e-3)
 
 
@@ -179,7 +179,7 @@ def test_image_smaller_than_patch_is_a_clear_error():
 
 def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
     workdir, result = built
-    args = ["--set", f"run.workdir='{workdir}'", "--set", "tile.patch_size=16", "--set", "tile.crops_per_scene=3",
+    args = ["--set", f"run.workdir='{workdir}'", "--set", "tile.patch_size=32", "--set", "tile.crops_per_scene=3",
             "--set", "tile.split=[0.6, 0.2, 0.2]", "--set", "render.spp=[2, 4]", "--set", "render.reference_spp=16"]
     out = subprocess.run([ADMC, "dataset", "--summary", *args], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
@@ -187,7 +187,7 @@ def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
     sheet = result.store.parent / "contact_sheet.png"
     from PIL import Image
     image = Image.open(sheet)
-    assert image.size[0] == 4 * 16 + 3 * 4 and image.size[1] >= 16
+    assert image.size[0] == 4 * 32 + 3 * 4 and image.size[1] >= 32
 
 
 def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
@@ -197,7 +197,7 @@ def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
     scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
     cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
                              "render.reference_spp=8", "render.resolution=[32, 32]", "corpus.n_scenes=0",
-                             f"corpus.xml_dirs=['{scenes}']", "tile.patch_size=16", "tile.crops_per_scene=2",
+                             f"corpus.xml_dirs=['{scenes}']", "tile.patch_size=32", "tile.crops_per_scene=2",
                              "tile.split=[1.0, 0.0, 0.0]"])
     result = build_dataset(cfg, progress=False)
     assert [s.scene_id for s in result.scenes] == ["xml-kitchen"]

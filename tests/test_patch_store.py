@@ -125,6 +125,7 @@ def test_attributes_suffice_to_invert_transforms(store):
 
 def test_create_store_is_idempotent_and_refuses_other_transform(store):
     P.create_store(store, dict(ROOT_ATTRS))
+    write_synthetic(store, "train", "a", 1)  # a store without scenes pins nothing (the next run takes it over)
     with pytest.raises(P.PatchStoreError, match=r"transform\.eps.*0\.00316.*0\.001"):
         P.create_store(store, {**ROOT_ATTRS, "transform": {**SPEC, "eps": 0.001}})
     with pytest.raises(P.PatchStoreError, match="render_fingerprint"):
