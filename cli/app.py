@@ -286,11 +286,7 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
 @_user_errors
 def show_config(config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Print the resolved configuration (defaults, your config file and --set overrides merged)."""
-    cfg = _load(config, set_)
-    for section, values in cfg.to_dict().items():
-        console.print(f"[bold][{section}][/]")
-        for key, value in values.items():
-            console.print(f"{key} = {list(value) if isinstance(value, tuple) else value!r}", markup=False)
+    typer.echo(config_mod.config_toml(_load(config, set_)), nl=False)
 
 
 def main() -> None:
