@@ -11,6 +11,7 @@ from admc.model.settings import ModelSettings
 from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline.config import Config
 from admc.pipeline.stages import StageError, build_dataset
+from admc.stores.checkpoints import load_checkpoint
 
 WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
 
@@ -53,6 +54,18 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
     return train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
                  init_from=None if resume else init_from, resume=resume, progress=progress)
+
+
+def interrupted_note(cfg: Config, stage: str) -> str:
+    """What an interrupted `train` kept. Read from the checkpoint on disk, so it is true wherever the run
+    stopped (a checkpoint is published by rename: an interrupted save leaves the previous one whole)."""
+    path = train_dir(cfg, stage) / CHECKPOINT_NAME
+    if not path.is_file():
+        return (f"interrupted: no checkpoint written yet (one is written every train.checkpoint_every = "
+                f"{cfg.train.checkpoint_every} steps to {path}); run the same command to start over")
+    step = load_checkpoint(path)["step"]
+    return (f"interrupted: checkpoint {path} holds step {step} (steps after it are not saved); run the same "
+            f"command to resume from it")
 
 
 def default_weights(cfg: Config) -> Path:
