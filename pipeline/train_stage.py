@@ -11,7 +11,7 @@ from admc.model.settings import ModelSettings
 from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline.config import Config
 from admc.pipeline.stages import StageError, build_dataset
-from admc.stores.checkpoints import load_checkpoint
+from admc.stores.checkpoints import load_checkpoint, read_networks
 
 WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
 
@@ -51,6 +51,8 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
                              "match this [model] config")
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
+    if init_from is not None and not resume:
+        read_networks(init_from)  # a damaged or foreign file is refused before the dataset is built
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
     return train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
                  init_from=None if resume else init_from, resume=resume, progress=progress)

@@ -91,10 +91,11 @@ def test_weights_that_are_not_a_checkpoint(tmp_path):
             assert "weights_only" not in out.stderr  # torch's unsafe advice is not passed on
 
 
-def test_train_init_from_garbage(tiny_workdir, tmp_path):
+def test_train_init_from_garbage_is_refused_before_the_dataset_is_built(tmp_path):
     for bad, reason in garbage_files(tmp_path).items():
-        out = run("train", "--stage", "finetune", "--init", str(bad), *flags(settings(tiny_workdir)))
+        out = run("train", "--stage", "finetune", "--init", str(bad), *flags(settings(tmp_path / "w")))
         refused(out, f"{bad}: not a readable torch file: ", reason)
+        assert not (tmp_path / "w" / "renders").exists()
         assert "weights_only" not in out.stderr
 
 
@@ -155,15 +156,16 @@ def test_a_batch_carries_on_past_a_bad_file_and_fails_at_the_end(tmp_path):
 
 
 def _interrupt_at(workdir: Path, step: int, checkpoint_every: int):
-    """Start a long `train`, send SIGINT (a Ctrl-C) once it has logged `step`, and return its result."""
-    items = settings(workdir, steps=10_000) + [f"train.checkpoint_every={checkpoint_every}"]
+    """Start a long `train` with data-loader workers, and once it has logged `step` send SIGINT to its whole
+    process group, as Ctrl-C in a terminal does; return its exit code and stderr."""
+    items = settings(workdir, steps=10_000) + [f"train.checkpoint_every={checkpoint_every}", "train.num_workers=2"]
     process = subprocess.Popen([ADMC, "train", *flags(items)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                               text=True)
+                               text=True, start_new_session=True)
     seen = []
     for line in process.stderr:
         seen.append(line)
         if line.startswith(f"pretrain step {step}/"):
-            process.send_signal(signal.SIGINT)
+            os.killpg(process.pid, signal.SIGINT)
             break
     rest = process.stderr.read()
     process.wait(timeout=120)
