@@ -42,10 +42,8 @@ def _unreadable(head: bytes, exc: Exception) -> str:
     if unsafe:
         return (f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values, which admc does not "
                 f"unpickle")
-    if head.startswith(b"PK"):  # torch's own zip format: damaged on the way
-        detail = re.sub(r"^\[enforce fail at [^\]]*\][\s.]*", "", str(exc).strip())
-        first = detail.splitlines()[0].split(". ")[0].rstrip(".") if detail else type(exc).__name__
-        return f"truncated or corrupt ({first})"
+    if head.startswith(b"PK"):  # torch's own zip format
+        return "it starts like a torch file but is truncated or damaged"
     return "its content is not in torch's save format (text or other data?)"
 
 
@@ -78,13 +76,26 @@ def _load(path: Path, *formats: str) -> dict:
 
 
 def load_network(net: torch.nn.Module, state: dict, where: str, architecture: str) -> None:
-    """net.load_state_dict(state); missing, unexpected or differently shaped tensors become one
-    CheckpointError naming `where` (file, branch, network) and the `architecture` they were checked against."""
-    try:
-        net.load_state_dict(state)
-    except (RuntimeError, TypeError, AttributeError) as exc:
-        first = " ".join(line.strip() for line in str(exc).strip().splitlines()[:3])
-        raise CheckpointError(f"{where} weights do not fit {architecture}: {first}") from None
+    """net.load_state_dict(state), after checking that `state` has exactly the net's tensors and shapes;
+    a mismatch is one short CheckpointError naming `where` (file, branch, network) and `architecture`."""
+    expected = net.state_dict()
+    state = state if isinstance(state, dict) else {}
+    shape = {k: list(getattr(v, "shape", [])) for k, v in state.items()}
+    reshaped = [k for k in expected if k in state and shape[k] != list(expected[k].shape)]
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    problems = []
+    if reshaped:
+        first = reshaped[0]
+        problems.append(f"{len(reshaped)} tensor(s) of another shape (first {first}: {shape[first]} in the file, "
+                        f"{list(expected[first].shape)} in the model)")
+    if missing:
+        problems.append(f"{len(missing)} missing (first {missing[0]})")
+    if unexpected:
+        problems.append(f"{len(unexpected)} not in the model (first {unexpected[0]})")
+    if problems:
+        raise CheckpointError(f"{where} weights do not fit {architecture}: {'; '.join(problems)}")
+    net.load_state_dict(state)
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
