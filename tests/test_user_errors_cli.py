@@ -201,3 +201,10 @@ def test_a_damaged_cache_manifest_is_named(tiny_workdir, tmp_path):
     manifest = copy / "_task.json"
     manifest.write_text(manifest.read_text()[:20])
     refused(run("cache", "--set", f"run.workdir='{tmp_path}'"), f"{manifest}: not valid JSON")
+
+
+def test_a_damaged_render_sidecar_is_named(tiny_workdir, tmp_path):
+    shutil.copytree(tiny_workdir / "cache" / "render", tmp_path / "cache" / "render")
+    sidecar = next((tmp_path / "cache" / "render").glob("*/render.json"))
+    sidecar.write_text(sidecar.read_text()[:20])
+    refused(run("render", *flags(settings(tmp_path))), f"{sidecar}: not valid JSON")
