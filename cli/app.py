@@ -237,6 +237,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 
 
 def _denoise_one(model, path: Path, source, target: Path) -> None:
+    """Denoise one checked input into `target` and say what was done to it."""
     from admc.pipeline.denoise_io import write_denoised
 
     result = model(source.layers)
