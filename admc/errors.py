@@ -13,3 +13,7 @@ class AdmcError(Exception):
 
 class TrainingError(AdmcError, ValueError):
     """Training cannot start or resume as asked (settings, checkpoint or data do not fit)."""
+
+
+class DeviceError(AdmcError, ValueError):
+    """The asked-for torch device is not one admc runs on, or this machine does not have it."""

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from admc.errors import AdmcError
 from admc.pipeline import config as config_mod
 
 app = typer.Typer(help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
@@ -25,20 +26,13 @@ SchedulerOpt = Annotated[Optional[str], typer.Option(help="sync | threads | proc
 
 
 def _user_errors(fn):
-    """Known, user-caused failures print one clear line and exit 2 instead of a traceback."""
+    """A user-fixable failure (any admc.errors.AdmcError) prints its one message and exits 2; anything else
+    is a bug and keeps its traceback. ADMC_DEBUG=1 shows the traceback of user errors too."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        from admc.errors import AdmcError
-        from admc.model.trainer import TrainingDiverged
-        from admc.pipeline.eval_stage import EvalStageError
-        from admc.pipeline.stages import StageError
-        from admc.pipeline.variants import VariantError
-
         try:
             return fn(*args, **kwargs)
-        except (AdmcError, ValueError, VariantError, StageError, EvalStageError, TrainingDiverged, FileNotFoundError) as exc:
-            # ValueError covers ConfigError, SceneError, ExrError, PatchStoreError, EvalError, CheckpointError
-            # and the trainer's refusals; ADMC_DEBUG=1 shows the traceback instead.
+        except AdmcError as exc:
             if os.environ.get("ADMC_DEBUG"):
                 raise
             err.print(Text.assemble(("error: ", "bold red"), str(exc)))
@@ -153,10 +147,14 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed).
 
     An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer)."""
-    from admc.pipeline.train_stage import run_training
+    from admc.pipeline.train_stage import interrupted_note, run_training
 
     cfg = _load(config, set_, scheduler)
-    result = run_training(cfg, stage.value, init_from=init, restart=restart)
+    try:
+        result = run_training(cfg, stage.value, init_from=init, restart=restart)
+    except KeyboardInterrupt:
+        err.print(interrupted_note(cfg, stage.value), markup=False, highlight=False)
+        raise typer.Exit(130) from None
     for note in result.notes:
         console.print(note, markup=False)
     table = Table(title=f"{stage.value}: step {result.step}")
@@ -213,25 +211,52 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
-            tile: Annotated[int, typer.Option(help="Tile size in pixels (bounds memory; results are the same).")] = 512,
+            tile: Annotated[int, typer.Option(min=1, help="Tile size in pixels (bounds memory; results are the "
+                                                          "same).")] = 512,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
-    from admc.pipeline.denoise_io import check_output_path, load_denoise_input, write_denoised
+    from admc.pipeline.denoise_io import DenoiseInputError, check_output_path, load_denoise_input
+    from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
         raise typer.BadParameter("--output names one file; give one input, or leave it out")
-    cfg, model = _load(config, set_), None
+    cfg, model, written, failed = _load(config, set_), None, [], []
     for path in inputs:
-        source = load_denoise_input(path)
-        target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
-        check_output_path(target, source)
-        model = model or _denoiser(cfg, weights, device, tile)  # after the first input checks out
-        result = model(source.layers)
-        write_denoised(target, result, source=source)
-        for note in source.notes + result.notes:
-            console.print(f"  {note}", markup=False)
-        console.print(f"{path} -> {target}  ({'+'.join(result.branches)}, {result.seconds:.2f} s on {model.device})",
-                      markup=False)
+        try:
+            source = load_denoise_input(path)
+            target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
+            check_output_path(target, source)
+            model = model or _denoiser(cfg, weights, device, tile)  # after the first input checks out
+            _denoise_one(model, path, source, target)
+        except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
+            if len(inputs) == 1:
+                raise
+            failed.append((path, exc))
+            continue
+        written.append(target)
+    if failed:
+        raise DenoiseInputError(_batch_summary(failed, written, len(inputs)))
+
+
+def _denoise_one(model, path: Path, source, target: Path) -> None:
+    """Denoise one checked input into `target` and say what was done to it."""
+    from admc.pipeline.denoise_io import write_denoised
+
+    result = model(source.layers)
+    write_denoised(target, result, source=source)
+    for note in source.notes + result.notes:
+        console.print(f"  {note}", markup=False)
+    console.print(f"{path} -> {target}  ({'+'.join(result.branches)}, {result.seconds:.2f} s on {model.device})",
+                  markup=False)
+
+
+def _batch_summary(failed: list[tuple[Path, Exception]], written: list[Path], total: int) -> str:
+    """Which inputs of a batch failed and why, and what was written, as one message."""
+    lines = [f"{len(failed)} of {total} inputs not denoised:"]
+    for path, exc in failed:
+        lines.append(f"  {exc}" if str(exc).startswith(str(path)) else f"  {path}: {exc}")
+    lines.append(f"written: {', '.join(map(str, written))}" if written else "nothing written")
+    return "\n".join(lines)
 
 
 @app.command("eval")
@@ -289,11 +314,7 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
 @_user_errors
 def show_config(config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Print the resolved configuration (defaults, your config file and --set overrides merged)."""
-    cfg = _load(config, set_)
-    for section, values in cfg.to_dict().items():
-        console.print(f"[bold][{section}][/]")
-        for key, value in values.items():
-            console.print(f"{key} = {list(value) if isinstance(value, tuple) else value!r}", markup=False)
+    typer.echo(config_mod.config_toml(_load(config, set_)), nl=False)
 
 
 def main() -> None:

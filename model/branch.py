@@ -15,6 +15,8 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
+from admc.stores.checkpoints import load_network
+
 from .critic import Critic
 from .generator import build_generator
 from .losses import critic_loss, generator_loss
@@ -178,9 +180,4 @@ class BranchTrainer:
     def load_networks(self, generator: dict[str, Tensor], critic: dict[str, Tensor], source: str) -> None:
         """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs."""
         for name, net, sd in (("generator", self.generator, generator), ("critic", self.critic, critic)):
-            try:
-                net.load_state_dict(sd)
-            except RuntimeError as exc:
-                first = str(exc).strip().splitlines()
-                raise ValueError(f"{source}: {self.branch} {name} weights do not fit the configured "
-                                 f"architecture: {' '.join(first[:3])}") from None
+            load_network(net, sd, f"{source}: {self.branch} {name}", "the configured architecture")

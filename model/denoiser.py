@@ -264,7 +264,7 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
     Refuses weights trained on other transforms than this code applies (their outputs would be
     inverted wrongly); a file without a specular branch denoises diffuse only.
     """
-    from admc.stores.checkpoints import CheckpointError, read_networks
+    from admc.stores.checkpoints import CheckpointError, load_network, read_networks
 
     from .settings import ModelSettings
     from .transforms import transform_spec
@@ -275,11 +275,16 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
         raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")
-    config = ModelSettings.from_saved(model).generator_config()
+    try:
+        config = ModelSettings.from_saved(model).generator_config()
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: its model metadata {model} is not an architecture this code builds "
+                              f"({exc})") from None
     generators = {}
     for branch, state in nets.items():
         generator = build_generator(config)
-        generator.load_state_dict({k: v.float() for k, v in state["generator"].items()})
+        load_network(generator, state["generator"], f"{path}: {branch} generator",
+                     "the architecture its own metadata describes")
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name, source=str(path))

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from admc.errors import AdmcError
+from admc.errors import AdmcError, DeviceError, TrainingError
 from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
 from admc.stores.patches import PatchReader, PatchStoreError
 
@@ -62,11 +62,20 @@ class TrainResult:
 
 
 def resolve_device(name: str) -> torch.device:
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device: 'cuda' requested but torch sees no CUDA device")
+    """auto | cpu | cuda | cuda:N as a torch device this machine has; DeviceError naming the value otherwise."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise DeviceError(f"device {name!r}: not a device admc runs on; use auto, cpu, cuda or cuda:N")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise DeviceError(f"device {name!r}: requested, but torch sees no CUDA device on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise DeviceError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 def _rng_state() -> dict:
@@ -96,31 +105,31 @@ def _seed_everything(seed: int) -> None:
 def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, model: ModelSettings, stage: str,
                      fingerprint: str) -> None:
     if checkpoint["stage"] != stage:
-        raise ValueError(f"{path}: is a {checkpoint['stage']!r} checkpoint, cannot resume it as {stage!r}")
+        raise TrainingError(f"{path}: is a {checkpoint['stage']!r} checkpoint, cannot resume it as {stage!r}")
     saved = dataclasses.asdict(ModelSettings.from_saved(checkpoint["model"]))
     if saved != dataclasses.asdict(model):
         diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
-        raise ValueError(f"{path}: model settings differ from the checkpoint's in {diff}")
+        raise TrainingError(f"{path}: model settings differ from the checkpoint's in {diff}")
     saved, now = checkpoint["settings"], dataclasses.asdict(settings)
     diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
     if diff:
-        raise ValueError(f"{path}: train settings {diff} differ from the checkpoint's; an exact resume allows "
-                         f"changing only {list(RESUMABLE_CHANGES)}")
+        raise TrainingError(f"{path}: train settings {diff} differ from the checkpoint's; an exact resume allows "
+                            f"changing only {list(RESUMABLE_CHANGES)}")
     if checkpoint["store"]["fingerprint"] != fingerprint:
-        raise ValueError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
-                         "resume needs the same data: start a 'finetune' from the checkpoint instead")
+        raise TrainingError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
+                            "resume needs the same data: start a 'finetune' from the checkpoint instead")
 
 
 def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict, str]:
     """(branch -> {"generator", "critic"}, transform spec, description) from a checkpoint or fp16 weights."""
     if init_from is None:
-        raise ValueError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
+        raise TrainingError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
     init_from = Path(init_from)
     nets, saved_model, transform = read_networks(init_from)
     saved = dataclasses.asdict(ModelSettings.from_saved(saved_model))
     if saved != dataclasses.asdict(model):
         diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
-        raise ValueError(f"{init_from}: its model settings differ from the configured ones in {diff}")
+        raise TrainingError(f"{init_from}: its model settings differ from the configured ones in {diff}")
     return nets, transform, str(init_from)
 
 
@@ -159,7 +168,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     settings.check()
     model.check()
     if stage not in STAGES:
-        raise ValueError(f"stage: {stage!r} is not one of {STAGES}")
+        raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
     store, out_dir = Path(store_path), Path(out_dir)
     checkpoint_path, weights_path = out_dir / CHECKPOINT_NAME, out_dir / WEIGHTS_NAME
     notes: list[str] = []
@@ -180,12 +189,13 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         transform, source = checkpoint["transform"], f"checkpoint {checkpoint_path}"
     else:
         if checkpoint_path.exists():
-            raise ValueError(f"{checkpoint_path} exists: pass resume=True to continue that run, or use another out_dir")
+            raise TrainingError(f"{checkpoint_path} exists: pass resume=True to continue that run, "
+                                "or use another out_dir")
         if stage == "finetune":
             init_nets, transform, source = _load_init(init_from, model)
             source = f"init weights {source}"
         elif init_from is not None:
-            raise ValueError("init_from: only stage 'finetune' starts from existing weights")
+            raise TrainingError("init_from: only stage 'finetune' starts from existing weights")
         else:
             transform, source = transform_spec(), "this code's transform spec"
 
@@ -223,7 +233,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     if checkpoint is not None:
         for b, trainer in trainers.items():
             if b not in checkpoint["branches"]:
-                raise ValueError(f"{checkpoint_path}: has no {b} branch but the store and settings train it")
+                raise TrainingError(f"{checkpoint_path}: has no {b} branch but the store and settings train it")
             trainer.load_state_dict(checkpoint["branches"][b], str(checkpoint_path))
         _set_rng_state(checkpoint["rng"])
         start = int(checkpoint["step"])
@@ -231,7 +241,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     elif init_nets is not None:
         for b, trainer in trainers.items():
             if b not in init_nets:
-                raise ValueError(f"{init_from}: has no {b} branch to fine-tune")
+                raise TrainingError(f"{init_from}: has no {b} branch to fine-tune")
             trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(init_from))
     best = BestNetworks()
     if checkpoint is not None:

@@ -163,6 +163,8 @@ def check_output_path(path: Path, source: DenoiseInput) -> None:
     path = Path(path)
     if path.suffix.lower() != ".exr":
         raise DenoiseInputError(f"{path}: the output must be an .exr file")
+    if path.is_dir():
+        raise DenoiseInputError(f"{path}: is a directory; the output names the .exr file to write")
     if path.resolve() in source.paths:
         raise DenoiseInputError(f"{path}: is one of the input files; choose another output name")
 

@@ -1,7 +1,6 @@
 """The product's stages as functions of a Config: what the CLI and `make` targets call."""
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.scenes import SceneError, SceneSpec
 from admc.stores import patches
+from admc.stores.atomic import read_json
 
 TILE_CODE = code_version(tile, transforms, patches)
 
@@ -54,7 +54,7 @@ def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str
 
 
 def _sidecars(renders: dict[str, dict[str, Task]], published: dict[str, Path]) -> list[dict]:
-    return [json.loads((published[t.key] / render.SIDECAR_NAME).read_text())
+    return [read_json(published[t.key] / render.SIDECAR_NAME)
             for levels in renders.values() for t in levels.values()]
 
 

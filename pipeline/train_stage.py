@@ -12,6 +12,7 @@ from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline import render, tile
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.stages import StageError, build_dataset
+from admc.stores.checkpoints import load_checkpoint, read_networks
 
 WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
 
@@ -52,6 +53,8 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
     check_splits(cfg)
+    if init_from is not None and not resume:
+        read_networks(init_from)  # a damaged or foreign file is refused before the dataset is built
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
     result = train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
                    init_from=None if resume else init_from, resume=resume, progress=progress)
@@ -72,6 +75,18 @@ def check_splits(cfg: Config) -> None:
         raise ConfigError(f"config key 'tile.split': no scene of {corpus} falls in the val split, which "
                           f"train.val_every = {cfg.train.val_every} validates on; give val a share, add scenes, "
                           "or set train.val_every = 0")
+
+
+def interrupted_note(cfg: Config, stage: str) -> str:
+    """What an interrupted `train` kept. Read from the checkpoint on disk, so it is true wherever the run
+    stopped (a checkpoint is published by rename: an interrupted save leaves the previous one whole)."""
+    path = train_dir(cfg, stage) / CHECKPOINT_NAME
+    if not path.is_file():
+        return (f"interrupted: no checkpoint written yet (one is written every train.checkpoint_every = "
+                f"{cfg.train.checkpoint_every} steps to {path}); run the same command to start over")
+    step = load_checkpoint(path)["step"]
+    return (f"interrupted: checkpoint {path} holds step {step} (steps after it are not saved); run the same "
+            f"command to resume from it")
 
 
 def default_weights(cfg: Config) -> Path:

@@ -13,6 +13,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from admc.errors import AdmcError
+
+
+class JsonFileError(AdmcError, ValueError):
+    """A JSON file admc wrote (a cache manifest) is malformed: damaged or edited by hand."""
+
 
 def temp_sibling(path: Path) -> Path:
     """A unique hidden name in the same folder (same filesystem, so the final rename is atomic)."""
@@ -63,7 +69,7 @@ def write_json(path: Path, obj: Any) -> None:
 
 
 def read_json(path: Path) -> Any:
-    """Parse a JSON file; a missing or malformed file raises ValueError naming it."""
+    """Parse a JSON file; a missing file raises FileNotFoundError, a malformed one JsonFileError, naming it."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -72,4 +78,4 @@ def read_json(path: Path) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        raise JsonFileError(f"{path}: not valid JSON ({exc})") from None

@@ -9,8 +9,8 @@ weights_only=True: no arbitrary code runs when opening a downloaded file.
 from __future__ import annotations
 
 import os
-import pickle
-import zipfile
+import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -33,14 +33,39 @@ def _save(path: Path, obj: dict) -> None:
         torch.save(obj, tmp)
 
 
+def _unreadable(head: bytes, exc: Exception) -> str:
+    """Why torch could not read a file starting with `head`, for a user, without torch's advice to retry
+    with weights_only=False: unpickling a file from elsewhere that way can run arbitrary code."""
+    if not head:
+        return "the file is empty"
+    unsafe = re.search(r"GLOBAL (\S+) was not an allowed global", str(exc))
+    if unsafe:
+        return (f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values, which admc does not "
+                f"unpickle")
+    if head.startswith(b"PK"):  # torch's own zip format
+        return "it starts like a torch file but is truncated or damaged"
+    return "its content is not in torch's save format (text or other data?)"
+
+
 def _load(path: Path, *formats: str) -> dict:
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise CheckpointError(f"{path}: no such file")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: is a directory, not a checkpoint or weights file")
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise CheckpointError(f"{path}: not a readable torch file (truncated or corrupt?): {exc}") from None
+        with path.open("rb") as file:
+            head = file.read(4)
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot be read ({exc.strerror})") from None
+    try:
+        with warnings.catch_warnings():  # e.g. a pickle protocol note: noise before the real error
+            warnings.simplefilter("ignore")
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+    except MemoryError:
+        raise
+    except Exception as exc:  # foreign data makes torch raise anything: KeyError: 101 for a text file
+        raise CheckpointError(f"{path}: not a readable torch file: {_unreadable(head, exc)}") from None
     if not isinstance(obj, dict) or obj.get("format") not in formats:
         found = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
         raise CheckpointError(f"{path}: not an {' or '.join(formats)} file (format={found!r})")
@@ -48,6 +73,29 @@ def _load(path: Path, *formats: str) -> dict:
         raise CheckpointError(f"{path}: {obj['format']} format_version {obj.get('format_version')!r}, "
                               f"this code reads {FORMAT_VERSION}")
     return obj
+
+
+def load_network(net: torch.nn.Module, state: dict, where: str, architecture: str) -> None:
+    """net.load_state_dict(state), after checking that `state` has exactly the net's tensors and shapes;
+    a mismatch is one short CheckpointError naming `where` (file, branch, network) and `architecture`."""
+    expected = net.state_dict()
+    state = state if isinstance(state, dict) else {}
+    shape = {k: list(getattr(v, "shape", [])) for k, v in state.items()}
+    reshaped = [k for k in expected if k in state and shape[k] != list(expected[k].shape)]
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    problems = []
+    if reshaped:
+        first = reshaped[0]
+        problems.append(f"{len(reshaped)} tensor(s) of another shape (first {first}: {shape[first]} in the file, "
+                        f"{list(expected[first].shape)} in the model)")
+    if missing:
+        problems.append(f"{len(missing)} missing (first {missing[0]})")
+    if unexpected:
+        problems.append(f"{len(unexpected)} not in the model (first {unexpected[0]})")
+    if problems:
+        raise CheckpointError(f"{where} weights do not fit {architecture}: {'; '.join(problems)}")
+    net.load_state_dict(state)
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
@@ -92,7 +140,10 @@ def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     """(branch -> {"generator", "critic"} state dicts, model settings, transform spec) from either a
     training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at."""
     obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
-    if obj["format"] == WEIGHTS_FORMAT:
-        return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
-    nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in obj["branches"].items()}
-    return nets, obj["model"], obj["transform"]
+    try:
+        if obj["format"] == WEIGHTS_FORMAT:
+            return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
+        nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in obj["branches"].items()}
+        return nets, obj["model"], obj["transform"]
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise CheckpointError(f"{path}: a malformed {obj['format']} file (no {exc} entry where expected)") from None
