@@ -22,7 +22,9 @@ class StageError(AdmcError, RuntimeError):
 
 
 def open_cache(cfg: Config) -> StageCache:
-    return StageCache(Path(cfg.run.workdir) / "cache")
+    """The stage cache under run.workdir, as an absolute path: dask workers started in other folders
+    must write where this process reads."""
+    return StageCache((Path(cfg.run.workdir) / "cache").resolve())
 
 
 @dataclass

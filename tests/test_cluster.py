@@ -105,8 +105,8 @@ def _admc(workdir: Path, *args: str) -> list[str]:
     return [str(BIN / "admc-pipe"), "dataset", *sets, *args]
 
 
-def _dataset(workdir: Path, *args: str) -> str:
-    done = subprocess.run(_admc(workdir, *args), capture_output=True, text=True, timeout=600)
+def _dataset(workdir: Path, *args: str, cwd: Path | None = None) -> str:
+    done = subprocess.run(_admc(workdir, *args), capture_output=True, text=True, timeout=600, cwd=cwd)
     assert done.returncode == 0, done.stdout + done.stderr
     return done.stdout + done.stderr
 
@@ -151,8 +151,9 @@ def _published(workdir: Path) -> list[Path]:
 
 
 def test_cli_cluster_run_equals_a_local_run(cluster, local_run, tmp_path):
+    # a relative run.workdir: the workers run in another folder and must still write where the client reads
+    output = _dataset(Path("on-cluster"), "--scheduler", cluster.address, cwd=tmp_path)
     workdir = tmp_path / "on-cluster"
-    output = _dataset(workdir, "--scheduler", cluster.address)
     assert f"{N_TASKS} tasks run, 0 cached" in output
     _assert_same_dataset(workdir, local_run)
     lines = _progress_lines(output)  # off a terminal: one plain line per finished task
