@@ -42,12 +42,15 @@ def test_defaults_book_no_gpu_and_leave_partition_and_account_to_the_site(tmp_pa
     assert "--cpus-per-task=8" in directives and "--mem=32G" in directives and "-t 04:00:00" in directives
 
 
-def test_missing_extra_is_a_user_error_naming_the_key(tmp_path, monkeypatch):
+def test_missing_extra_is_a_user_error_naming_the_key(tmp_path, monkeypatch, variant):
+    from admc.pipeline.stages import render_corpus
+
     monkeypatch.setitem(sys.modules, "dask_jobqueue", None)  # what `import dask_jobqueue` sees when it is absent
+    cfg = _cfg(tmp_path, "corpus.n_scenes=1", "render.resolution=[8, 8]")
     with pytest.raises(slurm.ClusterError, match=r"'run.scheduler' is 'slurm'.*pip install 'admc\[cluster\]'"):
-        with slurm.scheduler_address(_cfg(tmp_path)):
-            pass
+        render_corpus(cfg, progress=False)
     assert issubclass(slurm.ClusterError, AdmcError)
+    assert not (tmp_path / "cache" / "render").exists()  # stopped before any task ran
 
 
 def test_other_schedulers_pass_through(tmp_path):
