@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import tomllib
 import typing
 from dataclasses import dataclass
@@ -114,6 +115,40 @@ class RunConfig:
         _require(bool(self.scheduler), "run.scheduler", "must not be empty")
 
 
+WALLTIME = re.compile(r"^(\d+-)?\d+:\d{2}:\d{2}$")
+
+
+@dataclass(frozen=True)
+class ClusterConfig:
+    """The SLURM jobs `run.scheduler = "slurm"` submits (pipeline/slurm.py): one dask worker per job."""
+
+    jobs: int
+    cores: int
+    memory: str
+    gpus: int
+    walltime: str
+    queue: str
+    account: str
+    interface: str
+    job_directives: tuple[str, ...]
+
+    def check(self) -> None:
+        from dask.utils import parse_bytes
+
+        _require(self.jobs >= 1, "cluster.jobs", f"must be >= 1, got {self.jobs}")
+        _require(self.cores >= 1, "cluster.cores", f"must be >= 1, got {self.cores}")
+        _require(self.gpus >= 0, "cluster.gpus", f"must be >= 0, got {self.gpus}")
+        try:
+            parse_bytes(self.memory)
+        except (ValueError, TypeError):
+            _require(False, "cluster.memory", f"must be a size such as '32GB' or '64GiB', got {self.memory!r}")
+        _require(bool(WALLTIME.match(self.walltime)), "cluster.walltime",
+                 f"must be HH:MM:SS or D-HH:MM:SS, got {self.walltime!r}")
+        for i, line in enumerate(self.job_directives):
+            _require(line.startswith("-") and "\n" not in line, f"cluster.job_directives[{i}]",
+                     f"must be one sbatch option such as '--constraint=a100', got {line!r}")
+
+
 @dataclass(frozen=True)
 class Config:
     corpus: CorpusConfig
@@ -123,6 +158,7 @@ class Config:
     train: TrainSettings
     eval: EvalConfig
     run: RunConfig
+    cluster: ClusterConfig
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

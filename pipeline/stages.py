@@ -8,7 +8,7 @@ from admc.errors import AdmcError
 import admc
 from admc.model import transforms
 from admc.model.critic import DOWNSAMPLING
-from admc.pipeline import render, runner, tile
+from admc.pipeline import render, runner, slurm, tile
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.scenes import SceneError, SceneSpec
@@ -23,7 +23,9 @@ class StageError(AdmcError, RuntimeError):
 
 
 def open_cache(cfg: Config) -> StageCache:
-    return StageCache(Path(cfg.run.workdir) / "cache")
+    """The stage cache under run.workdir, as an absolute path: dask workers started in other folders
+    must write where this process reads."""
+    return StageCache((Path(cfg.run.workdir) / "cache").resolve())
 
 
 @dataclass
@@ -48,8 +50,9 @@ def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str
     """Run tasks (and what they depend on) through the stage cache; return published paths and how many were cached."""
     store = open_cache(cfg)
     cached = sum(store.is_done(t) for t in runner.collect(tasks).values())
-    published = runner.run(tasks, store, scheduler=cfg.run.scheduler, workers=cfg.run.workers or None,
-                           progress=progress)
+    with slurm.scheduler_address(cfg) as scheduler:
+        published = runner.run(tasks, store, scheduler=scheduler, workers=cfg.run.workers or None,
+                               progress=progress)
     return published, cached
 
 

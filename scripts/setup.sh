@@ -32,6 +32,6 @@ pip_install() {  # quiet unless it fails: setuptools' build warnings are noise t
 echo "setup: installing torch 2.13.0 (CPU), then admc and its dependencies into $VENV"
 pip_install --upgrade pip
 pip_install "torch==2.13.0"
-pip_install -e ".[dev]"
+pip_install -e ".[dev,cluster]"
 echo "$want" > "$stamp"
 echo "setup: done ($VENV, $("$PY" -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"
