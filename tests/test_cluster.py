@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow
 
 BIN = Path(sys.executable).parent
 TINY = ["render.resolution=[32, 32]", "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-        "corpus.families=['room', 'tabletop']", "tile.patch_size=16", "tile.crops_per_scene=3",
+        "corpus.families=['room', 'tabletop']", "tile.patch_size=32", "tile.crops_per_scene=3",
         "tile.split=[0.5, 0.5, 0.0]"]
 N_TASKS = 4 * 3 + 4  # 4 scenes x (2 noisy + 1 reference) renders, one tile task per scene
 WAIT_S = 120  # the bound on every wait: generous for a contended 2-core CI machine
