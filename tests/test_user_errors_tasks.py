@@ -26,7 +26,7 @@ def tiny(workdir: Path, scenes: Path, *extra: str) -> list[str]:
     """--set options: only the user's scenes, 32x32, 2 spp + a 4 spp reference, everything in train."""
     settings = [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2]",
                 "render.reference_spp=4", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
-                "tile.patch_size=16", "tile.crops_per_scene=2", "tile.split=[1.0, 0.0, 0.0]", *extra]
+                "tile.patch_size=32", "tile.crops_per_scene=2", "tile.split=[1.0, 0.0, 0.0]", *extra]
     return [item for setting in settings for item in ("--set", setting)]
 
 
