@@ -44,26 +44,13 @@ LOG_MAX = {
 }
 
 
-def _conv_radius(module: nn.Module) -> int:
-    """Sum of the spatial radii of every Conv2d in `module` (all of them lie on one chain)."""
-    return sum((m.kernel_size[0] // 2) * m.dilation[0] for m in module.modules() if isinstance(m, nn.Conv2d))
-
-
 def receptive_radius(generator: Generator) -> int:
-    """How many pixels away an input can still change an output pixel of `generator`.
-
-    Every spatial conv is 3x3 (radius 1): head 1, two per residual block, body conv 1, tail 2. The
-    encoder's one 3x3 conv runs beside the head and meets the image path at the first CFM layer, so it
-    adds max(head, encoder) rather than both. Paper config (16 blocks): 1 + 32 + 1 + 2 = 36, a 73x73
-    receptive field. The CFM condition nets are 1x1 and add nothing.
-    """
+    """How many pixels away an input can still change an output pixel of `generator` (see
+    Generator._receptive_radius)."""
     if not isinstance(generator, Generator):
         raise TypeError(f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
                         f"pass overlap= explicitly for other modules")
-    encoder = _conv_radius(generator.encoder) if generator.encoder is not None else 0
-    after_head = sum(_conv_radius(b) for b in generator.blocks) + _conv_radius(generator.body_conv)
-    after_head += _conv_radius(generator.tail)
-    return max(_conv_radius(generator.head), encoder) + after_head
+    return generator.receptive_radius
 
 
 def axis_windows(size: int, tile: int, halo: int) -> list[tuple[int, int, int, int]]:
