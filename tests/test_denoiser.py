@@ -103,6 +103,24 @@ def test_tiled_equals_untiled_with_the_receptive_halo_and_not_with_less():
     assert (short - untiled).abs().max().item() > 1e-3 * scale  # the check can fail
 
 
+def test_darkness_gate_keeps_tiles_equal_and_far_pixels_zero():
+    """Where no input radiance lies within the receptive radius the output is exactly 0 (the
+    positive biases would otherwise paint a tint); the gate looks no farther than the convs, so
+    tiles still match the untiled image."""
+    g = strong_generator(4)
+    radius = receptive_radius(g)
+    x, f = torch.zeros(1, 3, 70, 90), torch.rand(1, 7, 70, 90)
+    x[..., 30:34, 40:43] = torch.rand(1, 3, 4, 3) * 3
+    with torch.no_grad():
+        untiled = g(x, f)
+        tiled = run_tiled(g, x, f, tile=32, halo=radius)
+    near = torch.zeros(70, 90, dtype=torch.bool)
+    near[30 - radius:34 + radius, 40 - radius:43 + radius] = True
+    assert float(untiled[..., ~near].abs().max()) == 0.0
+    assert bool((untiled[..., near] != 0).any())  # the check can fail: light nearby is denoised
+    assert (tiled - untiled).abs().max().item() <= 1e-5 * untiled.abs().max().item()
+
+
 def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
     # weights at 0.7x Kaiming keep the log outputs O(1), clear of the clamp that would hide errors
     diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
