@@ -198,7 +198,7 @@ class FullImageDenoiser:
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
         network_seconds = time.perf_counter() - net_start
-        outputs = keep_environment(outputs, inputs, clean["coverage"])
+        outputs = _keep_environment(outputs, inputs, clean["coverage"])
 
         diffuse = diffuse_inverse(outputs["diffuse"], albedo)
         specular = specular_inverse(outputs["specular"]) if run_specular else clean.get("specular")
@@ -223,7 +223,7 @@ class FullImageDenoiser:
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
 
 
-def keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray],
+def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray],
                      coverage: np.ndarray) -> dict[str, np.ndarray]:
     """Log-domain outputs with the input kept wherever coverage is 0.
 

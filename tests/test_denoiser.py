@@ -141,6 +141,21 @@ def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
+def test_environment_pixels_keep_their_input():
+    """Coverage 0 (every sample saw the environment): the input is kept, bright or black; the rest
+    is denoised."""
+    layers = render_layers(20, 24)
+    layers["coverage"][:, :8] = 0.0
+    layers["diffuse"][:, :4] = 0.7   # a lit environment: kept, not hidden
+    layers["diffuse"][:, 4:8] = 0.0  # a black one: stays black
+    result = FullImageDenoiser(strong_generator(5, scale=0.7), strong_generator(6, scale=0.7))(layers)
+    # the log value is stored in float32 (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1),
+    # under 6 for every log value here (d < 5.5), so the radiance comes back within 4e-7
+    np.testing.assert_allclose(result.diffuse[:, :8], layers["diffuse"][:, :8], rtol=1e-6, atol=0)
+    np.testing.assert_allclose(result.specular[:, :8], layers["specular"][:, :8], rtol=1e-6, atol=0)
+    assert np.abs(result.diffuse[:, 8:] - layers["diffuse"][:, 8:]).max() > 0.1  # the check can fail
+
+
 def test_overlap_below_the_receptive_radius_is_refused():
     g = strong_generator(0)
     with pytest.raises(ValueError, match="receptive field radius 8"):
