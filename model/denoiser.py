@@ -6,8 +6,8 @@ of the output is kept. Every kept pixel then sees exactly the inputs it sees in 
 tiled image equals the untiled one up to float rounding: no seams, and no blending window is needed.
 
 No padding is added by the denoiser: crops are taken inside the image (shifted inwards at its
-borders), so at the image border the network's own zero padding applies just as in an untiled run
-and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
+borders), so at the image border the network's own (replicate) padding applies just as in an untiled
+run and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
 """
 from __future__ import annotations
 
@@ -203,6 +203,7 @@ class FullImageDenoiser:
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
         network_seconds = time.perf_counter() - net_start
+        outputs = _keep_environment(outputs, inputs, clean["coverage"])
 
         diffuse = diffuse_inverse(outputs["diffuse"], albedo)
         specular = specular_inverse(outputs["specular"]) if run_specular else clean.get("specular")
@@ -225,6 +226,20 @@ class FullImageDenoiser:
             out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+
+
+def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray],
+                     coverage: np.ndarray) -> dict[str, np.ndarray]:
+    """Log-domain outputs with the input kept wherever coverage is 0.
+
+    Every camera sample of such a pixel escaped to the environment: it shows the environment directly,
+    with no light transport sampled and so no Monte Carlo noise to remove, and its features (no normal,
+    depth 1, albedo 0) tell the network nothing. The network's output there was a guess (around a
+    small object on a black background: a glow); the input is the answer, and it hides no light.
+    Partly covered pixels (silhouettes) are denoised as usual.
+    """
+    environment = coverage == 0
+    return {branch: np.where(environment, inputs[branch], out) for branch, out in outputs.items()}
 
 
 def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:

@@ -12,13 +12,23 @@ from torch import Tensor, nn
 FEATURE_CHANNELS = 7
 
 
+def conv3x3(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
+    """The generator's and encoder's same-size 3x3 conv, padding by repeating the edge pixels.
+
+    Zero padding made the image border look like a black frame to every layer, so the output
+    differed there from the interior even on a flat image; replicate padding keeps a flat image flat
+    up to its border and, unlike reflect padding, works for images one pixel wide.
+    """
+    return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, padding_mode="replicate")
+
+
 class EncoderNet(nn.Module):
     """conv3x3 7->hidden, LReLU(0.1), 3 x [conv1x1 hidden->hidden, LReLU(0.1)], conv1x1 hidden->out."""
 
     def __init__(self, hidden_channels: int = 128, out_channels: int = 32) -> None:
         super().__init__()
         layers: list[nn.Module] = [
-            nn.Conv2d(FEATURE_CHANNELS, hidden_channels, 3, padding=1),
+            conv3x3(FEATURE_CHANNELS, hidden_channels),
             nn.LeakyReLU(0.1, inplace=True),
         ]
         for _ in range(3):

@@ -10,9 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .encoder import FEATURE_CHANNELS, EncoderNet
+from .encoder import FEATURE_CHANNELS, EncoderNet, conv3x3
 
 COLOR_CHANNELS = 3
 # "cfm": full model; "none": no auxiliary features; "concat": features concatenated to the input;
@@ -89,8 +90,8 @@ class ResidualBlock(nn.Module):
     def __init__(self, channels: int, cfm: tuple[CFMLayer, CFMLayer] | None) -> None:
         super().__init__()
         self.cfm = nn.ModuleList(cfm) if cfm is not None else None
-        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
-        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv1 = conv3x3(channels, channels)
+        self.conv2 = conv3x3(channels, channels)
         self.relu = nn.ReLU(inplace=True)
 
     def forward(self, x: Tensor, cond: Tensor | None) -> Tensor:
@@ -115,12 +116,29 @@ def scaled_kaiming_(module: nn.Module, scale: float) -> None:
                 nn.init.zeros_(m.bias)
 
 
+def conv_radius(module: nn.Module) -> int:
+    """Sum of the spatial radii of every Conv2d in `module` (all of them lie on one chain)."""
+    return sum((m.kernel_size[0] // 2) * m.dilation[0] for m in module.modules() if isinstance(m, nn.Conv2d))
+
+
+def light_within(noisy: Tensor, radius: int) -> Tensor:
+    """(N, 1, H, W) bool: is any channel of `noisy` nonzero within `radius` pixels (a square window)?
+
+    A max filter of the "nonzero" map, done separably (2 * (2r + 1) compares a pixel, not (2r + 1)^2).
+    """
+    lit = (noisy != 0).any(dim=1, keepdim=True).float()
+    size = 2 * radius + 1
+    lit = F.max_pool2d(lit, (1, size), stride=1, padding=(0, radius))
+    return F.max_pool2d(lit, (size, 1), stride=1, padding=(radius, 0)) > 0
+
+
 class Generator(nn.Module):
     """One branch's denoiser: `forward(noisy, features)` -> denoised, same (N, 3, H, W) shape.
 
-    Fully convolutional with same-padding everywhere, so any H and W work. The authors' network has
-    no skip from the input to the output; `input_skip` adds one (see GeneratorConfig). This class is
-    the paper's full-resolution body; `build_generator` picks the backbone a config names.
+    Fully convolutional with same-size (replicate-padded) convs everywhere, so any H and W work. The
+    authors' network has no skip from the input to the output; `input_skip` adds one (see
+    GeneratorConfig). This class is the paper's full-resolution body; `build_generator` picks the
+    backbone a config names.
     """
 
     alignment = 1
@@ -132,21 +150,22 @@ class Generator(nn.Module):
         c = config.channels
         in_channels = COLOR_CHANNELS + FEATURE_CHANNELS if config.mode == "concat" else COLOR_CHANNELS
         self.encoder = EncoderNet(config.encoder_channels, config.cond_channels) if config.modulated else None
-        self.head = nn.Conv2d(in_channels, c, 3, padding=1)
+        self.head = conv3x3(in_channels, c)
         self._build_body()
         self.tail = nn.Sequential(
-            nn.Conv2d(c, c, 3, padding=1),
+            conv3x3(c, c),
             nn.ReLU(inplace=True),
-            nn.Conv2d(c, COLOR_CHANNELS, 3, padding=1),
+            conv3x3(c, COLOR_CHANNELS),
             nn.ReLU(inplace=True),
         )
         scaled_kaiming_(self, 0.1)
+        self.gate_radius = self.receptive_radius()
 
     def _build_body(self) -> None:
         c = self.config.channels
         self.blocks = nn.ModuleList(ResidualBlock(c, self._cfm_pair(c)) for _ in range(self.config.blocks))
         self.body_cfm = self._cfm(c) if self.config.modulated else None
-        self.body_conv = nn.Conv2d(c, c, 3, padding=1)
+        self.body_conv = conv3x3(c, c)
 
     def _cfm(self, channels: int) -> CFMLayer:
         mode = self.config.mode
@@ -157,14 +176,17 @@ class Generator(nn.Module):
         return (self._cfm(channels), self._cfm(channels)) if self.config.modulated else None
 
     def receptive_radius(self) -> int:
-        """How many pixels away an input can still change an output pixel (the denoiser's tile halo).
+        """How many pixels away an input can still change an output pixel (the denoiser's tile halo and
+        how far the darkness gate looks).
 
         Every spatial conv is 3x3 (radius 1): head 1, two per residual block, body conv 1, tail 2. The
         encoder's one 3x3 conv runs beside the head and meets the image path at the first CFM layer, so
         it adds max(head, encoder) rather than both. Paper config (16 blocks): 1 + 32 + 1 + 2 = 36, a
         73x73 receptive field. The CFM condition nets are 1x1 and add nothing.
         """
-        return 1 + 2 * self.config.blocks + 1 + 2
+        encoder = conv_radius(self.encoder) if self.encoder is not None else 0
+        after_head = sum(conv_radius(b) for b in self.blocks) + conv_radius(self.body_conv) + conv_radius(self.tail)
+        return max(conv_radius(self.head), encoder) + after_head
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Split for the authors' optimiser: the conditioned body and encoder ("body", 5x LR) and
@@ -192,11 +214,14 @@ class Generator(nn.Module):
         x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else noisy
         cond = self.encoder(features) if self.encoder is not None else None
         out = self._body(self.head(x), cond)
-        if self.config.input_skip:
-            # Predict a correction of the (log-domain) input: an untrained network passes the noisy
-            # input through, so short CPU trainings improve on it instead of re-learning it first.
-            return torch.relu(noisy + self.tail[:-1](out))
-        return self.tail(out)
+        # Predict a correction of the (log-domain) input with input_skip: an untrained network passes
+        # the noisy input through, so short CPU trainings improve on it instead of re-learning it.
+        out = self.tail[:-1](out) if self.config.input_skip else self.tail(out)
+        # Darkness gate: where no input radiance lies within the receptive radius the network sees no
+        # light at all, yet its biases and the CFM shift of the features still add a constant (a tint
+        # over a black background). Such pixels keep their input, zero: this hides no light it saw.
+        out = torch.where(light_within(noisy, self.gate_radius), out, 0.0)
+        return torch.relu(noisy + out) if self.config.input_skip else out
 
     def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
         f = head

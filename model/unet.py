@@ -19,6 +19,7 @@ from __future__ import annotations
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .encoder import conv3x3
 from .generator import Generator, ResidualBlock
 
 
@@ -34,10 +35,10 @@ class UNetGenerator(Generator):
         c, levels = self.config.channels, self.config.levels
         widths = [c * (level + 1) for level in range(levels + 1)]
         self.down_blocks = nn.ModuleList(ResidualBlock(w, self._cfm_pair(w)) for w in widths[:-1])
-        self.downs = nn.ModuleList(nn.Conv2d(a, b, 3, stride=2, padding=1) for a, b in zip(widths, widths[1:]))
+        self.downs = nn.ModuleList(conv3x3(a, b, stride=2) for a, b in zip(widths, widths[1:]))
         self.bottom = nn.ModuleList(ResidualBlock(widths[-1], self._cfm_pair(widths[-1]))
                                     for _ in range(self.config.blocks))
-        self.ups = nn.ModuleList(nn.Conv2d(b, a, 3, padding=1) for a, b in zip(widths, widths[1:]))
+        self.ups = nn.ModuleList(conv3x3(b, a) for a, b in zip(widths, widths[1:]))
         self.up_blocks = nn.ModuleList(ResidualBlock(w, self._cfm_pair(w)) for w in widths[:-1])
 
     def receptive_radius(self) -> int:

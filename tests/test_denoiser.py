@@ -107,6 +107,24 @@ def test_tiled_equals_untiled_with_the_receptive_halo_and_not_with_less():
     assert (short - untiled).abs().max().item() > 1e-3 * scale  # the check can fail
 
 
+def test_darkness_gate_keeps_tiles_equal_and_far_pixels_zero():
+    """Where no input radiance lies within the receptive radius the output is exactly 0 (the
+    positive biases would otherwise paint a tint); the gate looks no farther than the convs, so
+    tiles still match the untiled image."""
+    g = strong_generator(4)
+    radius = receptive_radius(g)
+    x, f = torch.zeros(1, 3, 70, 90), torch.rand(1, 7, 70, 90)
+    x[..., 30:34, 40:43] = torch.rand(1, 3, 4, 3) * 3
+    with torch.no_grad():
+        untiled = g(x, f)
+        tiled = run_tiled(g, x, f, tile=32, halo=radius)
+    near = torch.zeros(70, 90, dtype=torch.bool)
+    near[30 - radius:34 + radius, 40 - radius:43 + radius] = True
+    assert float(untiled[..., ~near].abs().max()) == 0.0
+    assert bool((untiled[..., near] != 0).any())  # the check can fail: light nearby is denoised
+    assert (tiled - untiled).abs().max().item() <= 1e-5 * untiled.abs().max().item()
+
+
 def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
     # weights at 0.7x Kaiming keep the log outputs O(1), clear of the clamp that would hide errors
     diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
@@ -131,6 +149,21 @@ def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
         assert a.shape == (70, 90, 3) and a.dtype == np.float32
         rounding = 4 * np.finfo(np.float32).eps * np.abs(b)  # expm1, the product and the sum, in float32
         assert np.all(np.abs(a - b) <= gain[part] * LOG_TOLERANCE * (1 + 1e-3) + rounding), part
+
+
+def test_environment_pixels_keep_their_input():
+    """Coverage 0 (every sample saw the environment): the input is kept, bright or black; the rest
+    is denoised."""
+    layers = render_layers(20, 24)
+    layers["coverage"][:, :8] = 0.0
+    layers["diffuse"][:, :4] = 0.7   # a lit environment: kept, not hidden
+    layers["diffuse"][:, 4:8] = 0.0  # a black one: stays black
+    result = FullImageDenoiser(strong_generator(5, scale=0.7), strong_generator(6, scale=0.7))(layers)
+    # the log value is stored in float32 (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1),
+    # under 6 for every log value here (d < 5.5), so the radiance comes back within 4e-7
+    np.testing.assert_allclose(result.diffuse[:, :8], layers["diffuse"][:, :8], rtol=1e-6, atol=0)
+    np.testing.assert_allclose(result.specular[:, :8], layers["specular"][:, :8], rtol=1e-6, atol=0)
+    assert np.abs(result.diffuse[:, 8:] - layers["diffuse"][:, 8:]).max() > 0.1  # the check can fail
 
 
 def test_overlap_below_the_receptive_radius_is_refused():
