@@ -163,6 +163,6 @@ def small_settings() -> tuple[ModelSettings, TrainSettings]:
                           input_skip=True)
     train = replace(TrainSettings(), steps=300, batch_size=2, l1_warmup_steps=100, critic_only_steps=50,
                     lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=50,
-                    lr_milestones=(200,), val_every=100, val_patches=16, checkpoint_every=100,
+                    lr_milestones=(200,), val_every=100, val_patches=64, checkpoint_every=100,
                     log_every=10, num_workers=0, threads=0)
     return model, train
