@@ -279,3 +279,16 @@ def test_bad_arguments_raise(variant):
     register()
     with pytest.raises(Exception, match="rr_depth"):
         mi.load_dict({"type": INTEGRATOR_NAME, "rr_depth": 0})
+
+
+def test_variants_are_only_those_the_integrator_accepts_and_llvm_is_found():
+    from admc.pipeline.variants import PREFERENCE, VariantError, _llvm_major, find_llvm, resolve_variant
+
+    assert resolve_variant("auto") in PREFERENCE
+    for name in ("scalar_rgb", "llvm_ad_spectral"):
+        with pytest.raises(VariantError, match=f"render.variant '{name}': the split integrator runs only in"):
+            resolve_variant(name)
+    assert [_llvm_major(p) for p in ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1",
+                                     "/usr/lib/llvm-19/lib/libLLVM.so.1", "/opt/libLLVM-18.so")] == [19, 15, 19, 18]
+    library = find_llvm()  # setup installs libllvm19; the system's 15 crashes Mitsuba and must never be picked
+    assert library is not None and _llvm_major(library) >= 16
