@@ -18,17 +18,11 @@ from torch import Tensor, nn
 from .critic import Critic
 from .generator import Generator
 from .losses import critic_loss, generator_loss
+from .precision import autocast_for, memory_format_for, resolve_precision
 from .settings import ModelSettings, TrainSettings
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-
-
-def autocast_for(device: torch.device) -> contextlib.AbstractContextManager:
-    """bf16 autocast on CUDA (no loss scaling needed, unlike fp16); full fp32 on the CPU."""
-    if device.type == "cuda":
-        return torch.autocast("cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
 
 
 def _grads_finite(params: list[nn.Parameter]) -> bool:
@@ -55,8 +49,8 @@ class BranchTrainer:
     def __init__(self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int,
                  device: torch.device):
         self.branch, self.settings, self.device = branch, settings, device
-        self.channels_last = device.type == "cuda"
-        memory = torch.channels_last if self.channels_last else torch.contiguous_format
+        self.dtype = resolve_precision(settings.precision, device)
+        self.memory_format = memory = memory_format_for(device, self.dtype)
         self.generator = Generator(model.generator_config()).to(device, memory_format=memory)
         self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
         lr = settings.lr_g(branch)
@@ -77,16 +71,15 @@ class BranchTrainer:
         return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
 
     def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        memory = torch.channels_last if self.channels_last else torch.contiguous_format
-        return {k: batch[k].to(self.device, non_blocking=True, memory_format=memory)
+        return {k: batch[k].to(self.device, non_blocking=True, memory_format=self.memory_format)
                 for k in ("noisy", "features", "reference")}
 
     def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:
-        with torch.no_grad(), autocast_for(self.device):
+        with torch.no_grad(), autocast_for(self.device, self.dtype):
             fake = self.generator(batch["noisy"], batch["features"])
         opt = self.optimizers["critic"]
         opt.zero_grad(set_to_none=True)
-        with autocast_for(self.device):
+        with autocast_for(self.device, self.dtype):
             loss, parts = critic_loss(self.critic, batch["reference"], fake, self.settings.gp_weight)
         parts["critic_loss"] = loss.detach()
         if not torch.isfinite(loss):
@@ -103,7 +96,7 @@ class BranchTrainer:
         for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
             opt.zero_grad(set_to_none=True)
         s = self.settings
-        with _frozen(self.critic), autocast_for(self.device):
+        with _frozen(self.critic), autocast_for(self.device, self.dtype):
             fake = self.generator(batch["noisy"], batch["features"])
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,

@@ -29,6 +29,7 @@ from admc.stores.patches import PatchReader, PatchStoreError
 from .branch import BranchTrainer
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
+from .precision import precision_name
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
 from .validation import validate
@@ -36,8 +37,10 @@ from .validation import validate
 CHECKPOINT_NAME = "checkpoint.pt"
 WEIGHTS_NAME = "weights-fp16.pt"
 # Settings a resumed run may change without changing what it computes.
+# precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the
+# other precision continues correctly, just not bit-identically (said in a note), as after a device change.
 RESUMABLE_CHANGES = ("steps", "val_every", "val_patches", "checkpoint_every", "log_every", "num_workers",
-                     "threads", "device", "max_bad_steps")
+                     "threads", "device", "precision", "max_bad_steps")
 log = logging.getLogger("admc.train")
 
 
@@ -106,6 +109,15 @@ def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, mode
     if checkpoint["store"]["fingerprint"] != fingerprint:
         raise ValueError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
                          "resume needs the same data: start a 'finetune' from the checkpoint instead")
+
+
+def _say_precision_change(checkpoint: dict, precision: str, say) -> None:
+    """Note a resume in another precision than the checkpoint's steps ran in (older checkpoints do not
+    say which)."""
+    before = checkpoint.get("precision")
+    if before is not None and before != precision:
+        say(f"the checkpoint's steps ran in {before}, this run continues in {precision}: training goes on "
+            f"from the same state, but not bit-identically to an uninterrupted {before} run")
 
 
 def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict, str]:
@@ -215,6 +227,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
 
     _seed_everything(settings.seed)
     trainers = {b: BranchTrainer(b, model, settings, patch_size, device) for b in readers}
+    precision = precision_name(next(iter(trainers.values())).dtype)
     start = 0
     if checkpoint is not None:
         for b, trainer in trainers.items():
@@ -224,6 +237,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         _set_rng_state(checkpoint["rng"])
         start = int(checkpoint["step"])
         say(f"resuming {stage} from {checkpoint_path} at step {start}")
+        _say_precision_change(checkpoint, precision, say)
     elif init_nets is not None:
         for b, trainer in trainers.items():
             if b not in init_nets:
@@ -231,7 +245,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
             trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(init_from))
 
     def state(step: int) -> dict:
-        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings),
+        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings), "precision": precision,
                 "model": dataclasses.asdict(model), "transform": transform,
                 "store": {"path": str(store), "fingerprint": fingerprint, "patch_size": patch_size},
                 "init_from": str(init_from) if init_from is not None else None,
@@ -284,7 +298,8 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
                 window_start, window_patches = time.perf_counter(), 0
             if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
                 for b, rows in val.items():
-                    validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device)
+                    validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device,
+                                             trainers[b].dtype)
                     metrics.log(done, {f"{b}/val_{k}": v for k, v in validation[b].items()})
             streak = any(t.bad_consecutive for t in trainers.values())
             if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
@@ -298,7 +313,8 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     export_weights(weights_path, {b: {"generator": t.generator.state_dict(), "critic": t.critic.state_dict()}
                                   for b, t in trainers.items()},
                    {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
-                    "stage": stage, "step": max(start, settings.steps), "store_fingerprint": fingerprint})
+                    "stage": stage, "step": max(start, settings.steps), "store_fingerprint": fingerprint,
+                    "precision": precision})
     return TrainResult(out_dir=out_dir, checkpoint=checkpoint_path, weights=weights_path,
                        step=max(start, settings.steps), branches=list(trainers), skipped_branches=skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=last_losses,
