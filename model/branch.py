@@ -4,7 +4,9 @@ The authors' optimiser: Adam(0.9, 0.999, eps 1e-8) everywhere; the conditioned b
 encoder learn at body_lr_factor x the branch's lr, head and tail at the lr and only from
 head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code); MultiStepLR on
 each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
-so a bad batch never reaches the weights; the step counts as bad.
+so a bad batch never reaches the weights; the step counts as bad. The networks run in
+train.precision (bf16 autocast + channels_last, see precision.py); the losses and the gradient
+penalty are float32 whatever it is (losses.py).
 """
 from __future__ import annotations
 
