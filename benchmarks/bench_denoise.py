@@ -10,8 +10,8 @@ OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 small and paper are the [model] of configs/default.toml and configs/paper.toml. Each timed run is one
 FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with the
 copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
-each, the precisions take turns run by run (a busy machine slows them alike); figures are medians
-over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
+each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
+figures are medians over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
 with AVX512-BF16 or AMX). --tile 0 runs the image in one piece; a positive --tile runs it in tiles
 with the receptive-field halo.
 """
@@ -28,7 +28,8 @@ from admc.model.denoiser import FullImageDenoiser, receptive_radius
 from admc.model.generator import Generator
 from admc.model.precision import PRECISIONS, resolve_precision
 from admc.model.settings import paper_settings, small_settings
-from admc.pipeline.denoisers import OidnDenoiser, OptixDenoiser, optix_unavailable_reason, time_denoiser
+from admc.pipeline.denoisers import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
+                                     time_denoiser)
 
 CONFIGS = {
     "paper": paper_settings()[0].generator_config(),
@@ -49,8 +50,8 @@ def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
     }
 
 
-def bench(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) -> dict[str, float]:
-    """{precision: median total seconds per image} of both branches, the precisions interleaved."""
+def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser], args: argparse.Namespace) -> None:
+    """Time admc (both branches) in each precision and the baselines, taking turns run by run."""
     torch.manual_seed(0)
     diffuse, specular = Generator(CONFIGS[name]), Generator(CONFIGS[name])
     height, width = layers["diffuse"].shape[:2]
@@ -64,10 +65,15 @@ def bench(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) ->
             denoiser(layers)
         if args.compile:
             print(f"{name:6s} {precision:8s}: first (compiling) run {first:.1f} s", flush=True)
+    for baseline in baselines.values():
+        time_denoiser(baseline, layers, repeats=1, warmup=args.warmup)
     runs = {p: [] for p in denoisers}
+    baseline_runs = {b: [] for b in baselines}
     for _ in range(args.repeats):
         for precision, denoiser in denoisers.items():
             runs[precision].append(denoiser(layers))
+        for b, baseline in baselines.items():  # the evaluation's own timing (time_denoiser)
+            baseline_runs[b].append(time_denoiser(baseline, layers, repeats=1, warmup=0)[1])
     totals = {}
     for precision, results in runs.items():
         network = statistics.median(r.network_seconds for r in results) * 1e3
@@ -80,23 +86,22 @@ def bench(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) ->
     if len(totals) > 1:
         print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {totals[base] / s:.2f}x"
                                                                for p, s in totals.items() if p != base), flush=True)
-    return totals
+    for b, seconds in baseline_runs.items():
+        median = statistics.median(seconds)
+        print(f"{b:6s} {width}x{height}: total {median * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
+              f"{name} / {b}: " + ", ".join(f"{p} {s / median:.2f}x" for p, s in totals.items()), flush=True)
 
 
-def bench_baseline(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) -> float | None:
-    """The evaluation's own baselines, timed the way the evaluation times them (time_denoiser)."""
-    height, width = layers["diffuse"].shape[:2]
-    if name == "optix":
-        reason = optix_unavailable_reason()
+def make_baselines(names: list[str], device: str, width: int, height: int) -> dict[str, Denoiser]:
+    """The evaluation's own baselines that run here (OIDN high quality on `device`; OptiX on CUDA)."""
+    baselines = {}
+    for name in names:
+        reason = optix_unavailable_reason() if name == "optix" else None
         if reason:
             print(f"optix  {width}x{height}: not run: {reason}", flush=True)
-            return None
-        denoiser = OptixDenoiser()
-    else:
-        denoiser = OidnDenoiser(quality="high", device=args.device)
-    _, seconds = time_denoiser(denoiser, layers, repeats=args.repeats, warmup=args.warmup)
-    print(f"{name:6s} {width}x{height}: total {seconds * 1e3:9.1f} ms/image  [{denoiser.device}]", flush=True)
-    return seconds
+        else:
+            baselines[name] = OptixDenoiser() if name == "optix" else OidnDenoiser(quality="high", device=device)
+    return baselines
 
 
 def main() -> None:
@@ -125,13 +130,9 @@ def main() -> None:
     print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
           f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")
     layers = synthetic_layers(height, width)
-    admc = {name: bench(name, layers, args) for name in args.configs}
-    baselines = {name: bench_baseline(name, layers, args) for name in args.baselines}
-    if baselines.get("oidn"):
-        for name, totals in admc.items():
-            print(f"{name:6s} total / OIDN: " + ", ".join(f"{p} {s / baselines['oidn']:.2f}x"
-                                                          for p, s in totals.items()), flush=True)
-
+    baselines = make_baselines(args.baselines, args.device, width, height)
+    for name in args.configs:
+        bench(name, layers, baselines, args)
 
 if __name__ == "__main__":
     main()
