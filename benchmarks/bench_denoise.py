@@ -1,32 +1,39 @@
-"""Print the full-image denoiser's time per image: both branches, random weights (speed does not
-depend on them), paper and small generator configs; and, on the same image and device, the
-baselines the evaluation compares against (Intel OIDN; NVIDIA OptiX where Mitsuba's CUDA variant runs).
+"""Print the full-image denoiser's time per image in float32 and bf16 side by side: both branches,
+random weights (speed does not depend on them), the paper's and the default (small) generator; and,
+on the same image and device, the baselines the evaluation compares against (Intel OIDN; NVIDIA
+OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
     .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small]
-        [--baselines oidn optix] [--device cpu|cuda] [--tile 0] [--repeats 3] [--warmup 1]
-        [--threads N] [--compile]
+        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 0]
+        [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
-Each timed run is one FullImageDenoiser call; "network" is the generators' share (synchronised:
-on CUDA it ends with the copy back to the host), "total" adds sanitising and the NumPy transforms.
-Figures are medians over --repeats after --warmup untimed runs. --tile 0 runs the image in one
-piece; a positive --tile runs it in tiles with the receptive-field halo. CUDA uses bfloat16
-autocast and channels_last (the denoiser's defaults there).
+small and paper are the [model] of configs/default.toml and configs/paper.toml. Each timed run is one
+FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with the
+copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
+each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
+figures are medians over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
+with AVX512-BF16 or AMX). --tile 0 runs the image in one piece; a positive --tile runs it in tiles
+with the receptive-field halo.
 """
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 
 import numpy as np
 import torch
 
 from admc.model.denoiser import FullImageDenoiser, receptive_radius
-from admc.model.generator import Generator, GeneratorConfig
-from admc.pipeline.denoisers import OidnDenoiser, OptixDenoiser, optix_unavailable_reason, time_denoiser
+from admc.model.generator import Generator
+from admc.model.precision import PRECISIONS, resolve_precision
+from admc.model.settings import paper_settings, small_settings
+from admc.pipeline.denoisers import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
+                                     time_denoiser)
 
 CONFIGS = {
-    "paper": GeneratorConfig(),
-    "small": GeneratorConfig(channels=32, blocks=4, cond_channels=16, encoder_channels=32),
+    "paper": paper_settings()[0].generator_config(),
+    "small": small_settings()[0].generator_config(),
 }
 
 
@@ -43,64 +50,89 @@ def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
     }
 
 
-def bench(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) -> None:
+def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser], args: argparse.Namespace) -> None:
+    """Time admc (both branches) in each precision and the baselines, taking turns run by run."""
     torch.manual_seed(0)
     diffuse, specular = Generator(CONFIGS[name]), Generator(CONFIGS[name])
     height, width = layers["diffuse"].shape[:2]
     tile = args.tile or max(height, width)
-    denoiser = FullImageDenoiser(diffuse, specular, device=args.device, tile=tile, compile=args.compile)
-    for _ in range(args.warmup):
-        denoiser(layers)
-    runs = [denoiser(layers) for _ in range(args.repeats)]
-    network = statistics.median(r.network_seconds for r in runs) * 1e3
-    total = statistics.median(r.seconds for r in runs) * 1e3
-    print(f"{name:6s} {width}x{height} tile {tile} ({runs[0].tiles} per branch, halo {denoiser.overlap}, "
-          f"receptive radius {receptive_radius(diffuse)}): network {network:9.1f} ms/image, "
-          f"total {total:9.1f} ms/image  [{', '.join(runs[0].branches)}]", flush=True)
+    # a copy of the networks per precision: the denoiser moves them to its memory layout in place
+    denoisers = {p: FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device, tile=tile,
+                                      dtype=PRECISIONS[p], compile=args.compile) for p in args.precisions}
+    for precision, denoiser in denoisers.items():
+        first = denoiser(layers).seconds
+        for _ in range(args.warmup - 1):
+            denoiser(layers)
+        if args.compile:
+            print(f"{name:6s} {precision:8s}: first (compiling) run {first:.1f} s", flush=True)
+    for baseline in baselines.values():
+        time_denoiser(baseline, layers, repeats=1, warmup=args.warmup)
+    runs = {p: [] for p in denoisers}
+    baseline_runs = {b: [] for b in baselines}
+    for _ in range(args.repeats):
+        for precision, denoiser in denoisers.items():
+            runs[precision].append(denoiser(layers))
+        for b, baseline in baselines.items():  # the evaluation's own timing (time_denoiser)
+            baseline_runs[b].append(time_denoiser(baseline, layers, repeats=1, warmup=0)[1])
+    totals = {}
+    for precision, results in runs.items():
+        network = statistics.median(r.network_seconds for r in results) * 1e3
+        totals[precision] = statistics.median(r.seconds for r in results)
+        print(f"{name:6s} {precision:8s} {width}x{height} tile {tile} ({results[0].tiles} per branch, halo "
+              f"{denoisers[precision].overlap}, receptive radius {receptive_radius(diffuse)}): network "
+              f"{network:9.1f} ms/image, total {totals[precision] * 1e3:9.1f} ms/image  "
+              f"[{', '.join(results[0].branches)}]", flush=True)
+    base = args.precisions[0]
+    if len(totals) > 1:
+        print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {totals[base] / s:.2f}x"
+                                                               for p, s in totals.items() if p != base), flush=True)
+    for b, seconds in baseline_runs.items():
+        median = statistics.median(seconds)
+        print(f"{b:6s} {width}x{height}: total {median * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
+              f"{name} / {b}: " + ", ".join(f"{p} {s / median:.2f}x" for p, s in totals.items()), flush=True)
 
 
-def bench_baseline(name: str, layers: dict[str, np.ndarray], args: argparse.Namespace) -> None:
-    """The evaluation's own baselines, timed the way the evaluation times them (time_denoiser)."""
-    height, width = layers["diffuse"].shape[:2]
-    if name == "optix":
-        reason = optix_unavailable_reason()
+def make_baselines(names: list[str], device: str, width: int, height: int) -> dict[str, Denoiser]:
+    """The evaluation's own baselines that run here (OIDN high quality on `device`; OptiX on CUDA)."""
+    baselines = {}
+    for name in names:
+        reason = optix_unavailable_reason() if name == "optix" else None
         if reason:
             print(f"optix  {width}x{height}: not run: {reason}", flush=True)
-            return
-        denoiser = OptixDenoiser()
-    else:
-        denoiser = OidnDenoiser(quality="high", device=args.device)
-    _, seconds = time_denoiser(denoiser, layers, repeats=args.repeats, warmup=args.warmup)
-    print(f"{name:6s} {width}x{height}: total {seconds * 1e3:9.1f} ms/image  [{denoiser.device}]", flush=True)
+        else:
+            baselines[name] = OptixDenoiser() if name == "optix" else OidnDenoiser(quality="high", device=device)
+    return baselines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=list(PRECISIONS))
     parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
                         help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--tile", type=int, default=0, help="largest tile core edge; 0: no tiling")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--warmup", type=int, default=1, help="untimed runs per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the generators")
     args = parser.parse_args()
+    if args.warmup < 1:
+        parser.error("--warmup must be >= 1")
     if args.threads:
         torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.size.lower().split("x"))
     device = torch.device(args.device)
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"cpu, {torch.get_num_threads()} threads")
-    print(f"torch {torch.__version__} on {where}; dtype {'bfloat16 autocast' if device.type == 'cuda' else 'float32'}"
-          f"{', compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")
+    default = [p for p, dtype in PRECISIONS.items() if dtype == resolve_precision("auto", device)][0]
+    print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
+          f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")
     layers = synthetic_layers(height, width)
+    baselines = make_baselines(args.baselines, args.device, width, height)
     for name in args.configs:
-        bench(name, layers, args)
-    for name in args.baselines:
-        bench_baseline(name, layers, args)
-
+        bench(name, layers, baselines, args)
 
 if __name__ == "__main__":
     main()

@@ -1,12 +1,18 @@
-"""Print training throughput (patches/s) of one branch's full trainer step: critic update with
-gradient penalty, then generator update (L1 + adversarial), optimiser steps and non-finite guards.
+"""Print training throughput (patches/s) of one branch's full trainer step in float32 and bf16 side by
+side: critic update with gradient penalty, then generator update (L1 + adversarial), optimiser steps
+and non-finite guards.
 
     .venv/bin/python benchmarks/bench_train.py [--device cpu|cuda] [--configs small paper]
-        [--batch-size N] [--patch-size P] [--steps 5] [--threads N]
+        [--precisions float32 bfloat16] [--batch-size N] [--patch-size P] [--steps 5] [--warmup 2]
+        [--threads N] [--compile]
 
-Inputs are random tensors in the store's value ranges (the data loader is not timed). CUDA runs
-use the trainer's bf16 autocast and channels_last; timings are synchronised. Median over --steps
-steps after two warm-up steps.
+small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml. Inputs are
+random tensors in the store's value ranges (the data loader is not timed). One trainer per precision
+(train.precision: bf16 autocast + channels_last, float32 losses and gradient penalty); after --warmup
+steps each, the precisions take turns step by step, so a busy machine slows them alike; figures are
+medians over --steps, and the last line gives each precision's speed-up over the first. --compile
+wraps each generator in torch.compile (the critic's double backward for the penalty cannot be
+compiled) and prints the first step, which pays the compilation. Timings are synchronised on CUDA.
 """
 from __future__ import annotations
 
@@ -27,47 +33,70 @@ def make_batch(batch_size: int, patch: int) -> dict[str, torch.Tensor]:
             "reference": torch.rand(batch_size, 3, patch, patch)}
 
 
-def bench(name: str, device: torch.device, batch_size: int | None, patch: int, steps: int) -> None:
+def timed_step(trainer: BranchTrainer, batch: dict[str, torch.Tensor], device: torch.device) -> float:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    start = time.perf_counter()
+    ok, _ = trainer.step(0, [batch])
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    if not ok:
+        raise RuntimeError(f"{trainer.settings.precision}: benchmark step was skipped as non-finite")
+    return time.perf_counter() - start
+
+
+def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
     model, train = paper_settings() if name == "paper" else small_settings()
-    train = replace(train, batch_size=batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
+    train = replace(train, batch_size=args.batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
                     critic_steps_per_g=1, head_tail_start_step=0)
-    torch.manual_seed(0)
-    trainer = BranchTrainer("diffuse", model, train, patch, device)
-    batch = make_batch(train.batch_size, patch)
-
-    def one_step() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        start = time.perf_counter()
-        ok, _ = trainer.step(0, [batch])
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        if not ok:
-            raise RuntimeError(f"{name}: benchmark step was skipped as non-finite")
-        return time.perf_counter() - start
-
-    for _ in range(2):
-        one_step()
-    seconds = statistics.median(one_step() for _ in range(steps))
-    print(f"{name:6s} batch {train.batch_size:3d} patch {patch:4d}: {seconds * 1e3:9.1f} ms/step  "
-          f"{train.batch_size / seconds:8.3g} patches/s per branch  (G + critic + GP, {device})")
+    batch = make_batch(train.batch_size, args.patch_size)
+    trainers = {}
+    for precision in args.precisions:
+        torch.manual_seed(0)
+        trainers[precision] = BranchTrainer("diffuse", model, replace(train, precision=precision),
+                                            args.patch_size, device)
+        if args.compile:
+            trainers[precision].generator = torch.compile(trainers[precision].generator)
+        first = timed_step(trainers[precision], batch, device)
+        for _ in range(args.warmup - 1):
+            timed_step(trainers[precision], batch, device)
+        if args.compile:
+            print(f"{name:6s} {precision:8s}: first (compiling) step {first:.1f} s", flush=True)
+    times = {p: [] for p in trainers}
+    for _ in range(args.steps):
+        for precision, trainer in trainers.items():
+            times[precision].append(timed_step(trainer, batch, device))
+    medians = {p: statistics.median(t) for p, t in times.items()}
+    for precision, seconds in medians.items():
+        print(f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
+              f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
+              f"(G + critic + GP, {device}{', compiled G' if args.compile else ''})", flush=True)
+    base = args.precisions[0]
+    print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {medians[base] / s:.2f}x"
+                                                           for p, s in medians.items() if p != base), flush=True)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--configs", nargs="+", default=["small", "paper"], choices=("small", "paper"))
+    parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=("float32", "bfloat16"))
     parser.add_argument("--batch-size", type=int, default=None, help="default: each config's own")
     parser.add_argument("--patch-size", type=int, default=128)
     parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=2, help="untimed steps per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0 = torch default)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the generators")
     args = parser.parse_args()
+    if args.warmup < 1:
+        parser.error("--warmup must be >= 1")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads; median of {args.steps} interleaved "
+          f"steps after {args.warmup} warm-up")
     for name in args.configs:
-        bench(name, device, args.batch_size, args.patch_size, args.steps)
+        bench(name, device, args)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ The authors' optimiser: Adam(0.9, 0.999, eps 1e-8) everywhere; the conditioned b
 encoder learn at body_lr_factor x the branch's lr, head and tail at the lr and only from
 head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code); MultiStepLR on
 each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
-so a bad batch never reaches the weights; the step counts as bad.
+so a bad batch never reaches the weights; the step counts as bad. The networks run in
+train.precision (bf16 autocast + channels_last, see precision.py); the losses and the gradient
+penalty are float32 whatever it is (losses.py).
 """
 from __future__ import annotations
 
@@ -20,17 +22,11 @@ from admc.stores.checkpoints import load_network
 from .critic import Critic
 from .generator import build_generator
 from .losses import critic_loss, generator_loss
+from .precision import autocast_for, memory_format_for, resolve_precision
 from .settings import ModelSettings, TrainSettings
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-
-
-def autocast_for(device: torch.device) -> contextlib.AbstractContextManager:
-    """bf16 autocast on CUDA (no loss scaling needed, unlike fp16); full fp32 on the CPU."""
-    if device.type == "cuda":
-        return torch.autocast("cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
 
 
 def _grads_finite(params: list[nn.Parameter]) -> bool:
@@ -57,8 +53,8 @@ class BranchTrainer:
     def __init__(self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int,
                  device: torch.device):
         self.branch, self.settings, self.device = branch, settings, device
-        self.channels_last = device.type == "cuda"
-        memory = torch.channels_last if self.channels_last else torch.contiguous_format
+        self.dtype = resolve_precision(settings.precision, device)
+        self.memory_format = memory = memory_format_for(device, self.dtype)
         self.generator = build_generator(model.generator_config()).to(device, memory_format=memory)
         self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
         lr = settings.lr_g(branch)
@@ -79,16 +75,15 @@ class BranchTrainer:
         return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
 
     def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        memory = torch.channels_last if self.channels_last else torch.contiguous_format
-        return {k: batch[k].to(self.device, non_blocking=True, memory_format=memory)
+        return {k: batch[k].to(self.device, non_blocking=True, memory_format=self.memory_format)
                 for k in ("noisy", "features", "reference")}
 
     def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:
-        with torch.no_grad(), autocast_for(self.device):
+        with torch.no_grad(), autocast_for(self.device, self.dtype):
             fake = self.generator(batch["noisy"], batch["features"])
         opt = self.optimizers["critic"]
         opt.zero_grad(set_to_none=True)
-        with autocast_for(self.device):
+        with autocast_for(self.device, self.dtype):
             loss, parts = critic_loss(self.critic, batch["reference"], fake, self.settings.gp_weight)
         parts["critic_loss"] = loss.detach()
         if not torch.isfinite(loss):
@@ -105,7 +100,7 @@ class BranchTrainer:
         for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
             opt.zero_grad(set_to_none=True)
         s = self.settings
-        with _frozen(self.critic), autocast_for(self.device):
+        with _frozen(self.critic), autocast_for(self.device, self.dtype):
             fake = self.generator(batch["noisy"], batch["features"])
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,

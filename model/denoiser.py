@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .generator import Generator, build_generator
+from .precision import autocast_for, memory_format_for, resolve_precision
 from .transforms import (
     EPS,
     RADIANCE_MAX,
@@ -134,7 +134,8 @@ class FullImageDenoiser:
     need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
     largest core edge run at once; `overlap` is the halo around each core, by default the largest
     receptive radius of the two generators, and a smaller one is refused (tiles would then differ
-    from the untiled image: seams). `dtype`: None = bfloat16 autocast on CUDA, float32 on CPU.
+    from the untiled image: seams). `dtype`: None = bfloat16 autocast (with channels_last) on CUDA and
+    on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere (precision.resolve_precision).
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables).
@@ -149,8 +150,8 @@ class FullImageDenoiser:
         self.torch_device = torch.device(device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
-        self.dtype = dtype or (torch.bfloat16 if self.torch_device.type == "cuda" else torch.float32)
-        self.channels_last = self.torch_device.type == "cuda"
+        self.dtype = dtype or resolve_precision("auto", self.torch_device)
+        self.memory_format = memory_format_for(self.torch_device, self.dtype)
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
             self.generators["specular"] = self._prepare(specular)
@@ -171,10 +172,7 @@ class FullImageDenoiser:
         self.name, self.source = name, source
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
-        generator = generator.to(self.torch_device).eval()
-        if self.channels_last:
-            generator = generator.to(memory_format=torch.channels_last)
-        return generator
+        return generator.to(self.torch_device, memory_format=self.memory_format).eval()
 
     def synchronize(self) -> None:
         if self.torch_device.type == "cuda":
@@ -217,12 +215,10 @@ class FullImageDenoiser:
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
-        return t.contiguous(memory_format=torch.channels_last) if self.channels_last else t
+        return t.contiguous(memory_format=self.memory_format)
 
     def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor) -> tuple[Tensor, int]:
-        autocast = (torch.autocast(self.torch_device.type, dtype=self.dtype) if self.dtype != torch.float32
-                    else nullcontext())
-        with torch.inference_mode(), autocast:
+        with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):
             out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)

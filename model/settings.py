@@ -14,6 +14,7 @@ from .generator import BACKBONES, MODES, GeneratorConfig
 
 BRANCHES = ("diffuse", "specular")
 DEVICES = ("auto", "cpu", "cuda")
+PRECISIONS = ("auto", "float32", "bfloat16")
 STAGES = ("pretrain", "finetune")
 
 
@@ -106,6 +107,7 @@ class TrainSettings:
     num_workers: int = 4
     threads: int = 0                      # CPU intra-op threads; 0 = torch's default
     device: str = "auto"
+    precision: str = "auto"               # auto | float32 | bfloat16 (autocast; see branch.resolve_precision)
     seed: int = 0
     max_bad_steps: int = 20               # consecutive non-finite steps before training stops
     branches: tuple[str, ...] = BRANCHES
@@ -129,6 +131,7 @@ class TrainSettings:
                  "lr_milestones", f"must be strictly increasing ints >= 1, got {milestones}")
         _require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
         _require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
+        _require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
         _require(len(self.branches) > 0 and all(b in BRANCHES for b in self.branches)
                  and len(set(self.branches)) == len(self.branches),
                  "branches", f"must be distinct names from {BRANCHES}, got {list(self.branches)}")

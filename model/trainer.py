@@ -30,6 +30,7 @@ from .branch import BranchTrainer
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
 from .selection import BestNetworks
+from .precision import precision_name
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
 from .validation import validate
@@ -37,8 +38,10 @@ from .validation import validate
 CHECKPOINT_NAME = "checkpoint.pt"
 WEIGHTS_NAME = "weights-fp16.pt"
 # Settings a resumed run may change without changing what it computes.
+# precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the
+# other precision continues correctly, just not bit-identically (said in a note), as after a device change.
 RESUMABLE_CHANGES = ("steps", "val_every", "val_patches", "checkpoint_every", "log_every", "num_workers",
-                     "threads", "device", "max_bad_steps")
+                     "threads", "device", "precision", "max_bad_steps")
 log = logging.getLogger("admc.train")
 
 
@@ -118,6 +121,15 @@ def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, mode
     if checkpoint["store"]["fingerprint"] != fingerprint:
         raise TrainingError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
                             "resume needs the same data: start a 'finetune' from the checkpoint instead")
+
+
+def _say_precision_change(checkpoint: dict, precision: str, say) -> None:
+    """Note a resume in another precision than the checkpoint's steps ran in (older checkpoints do not
+    say which)."""
+    before = checkpoint.get("precision")
+    if before is not None and before != precision:
+        say(f"the checkpoint's steps ran in {before}, this run continues in {precision}: training goes on "
+            f"from the same state, but not bit-identically to an uninterrupted {before} run")
 
 
 def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict, str]:
@@ -229,6 +241,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
 
     _seed_everything(settings.seed)
     trainers = {b: BranchTrainer(b, model, settings, patch_size, device) for b in readers}
+    precision = precision_name(next(iter(trainers.values())).dtype)
     start = 0
     if checkpoint is not None:
         for b, trainer in trainers.items():
@@ -238,6 +251,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         _set_rng_state(checkpoint["rng"])
         start = int(checkpoint["step"])
         say(f"resuming {stage} from {checkpoint_path} at step {start}")
+        _say_precision_change(checkpoint, precision, say)
     elif init_nets is not None:
         for b, trainer in trainers.items():
             if b not in init_nets:
@@ -248,7 +262,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         best.load_state_dict(checkpoint.get("best", {}))
 
     def state(step: int) -> dict:
-        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings),
+        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings), "precision": precision,
                 "model": dataclasses.asdict(model), "transform": transform,
                 "store": {"path": str(store), "fingerprint": fingerprint, "patch_size": patch_size},
                 "init_from": str(init_from) if init_from is not None else None,
@@ -263,7 +277,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
 
     def validate_all(step: int) -> None:
         for b, rows in val.items():
-            validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device)
+            validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device, trainers[b].dtype)
             metrics.log(step, {f"{b}/val_{k}": v for k, v in validation[b].items()})
             best.offer(b, step, validation[b]["relmse"], trainers[b].generator, trainers[b].critic)
 
@@ -326,7 +340,8 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         say(note)
     export_weights(weights_path, {b: best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
                    {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
-                    "stage": stage, "step": last_step, "selected": selected, "store_fingerprint": fingerprint})
+                    "stage": stage, "step": last_step, "selected": selected, "store_fingerprint": fingerprint,
+                    "precision": precision})
     return TrainResult(out_dir=out_dir, checkpoint=checkpoint_path, weights=weights_path,
                        step=last_step, branches=list(trainers), skipped_branches=skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=last_losses,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .branch import autocast_for
+from .precision import autocast_for, memory_format_for
 from .generator import Generator
 from .transforms import EPS
 
@@ -42,16 +42,17 @@ def psnr(x: Tensor, ref: Tensor) -> Tensor:
 
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
-             device: torch.device) -> dict[str, float]:
-    """{"psnr", "relmse", "noisy_psnr", "noisy_relmse"} averaged over the val patches."""
+             device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, float]:
+    """{"psnr", "relmse", "noisy_psnr", "noisy_relmse"} averaged over the val patches, the generator
+    run in `dtype` as in training (and as the denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
     outputs = []
-    memory = torch.channels_last if device.type == "cuda" else torch.contiguous_format
+    memory = memory_format_for(device, dtype)
     for i in range(0, len(val["noisy"]), batch_size):
         noisy = val["noisy"][i:i + batch_size].to(device, memory_format=memory)
         features = val["features"][i:i + batch_size].to(device, memory_format=memory)
-        with autocast_for(device):
+        with autocast_for(device, dtype):
             outputs.append(generator(noisy, features).float().cpu())
     generator.train(was_training)
     features = val["features"]

@@ -273,12 +273,52 @@ def test_denoiser_follows_the_evaluation_interface():
     assert image.shape == (8, 8, 3) and image.dtype == np.float32
 
 
+# bfloat16 keeps 8 significant bits: unit roundoff u = 2^-8. Under autocast every conv rounds its
+# inputs and its output to bf16, ~2u of that layer's output magnitude, and the 0.7-Kaiming test nets
+# do not amplify errors, so after the D convs of a generator's chain (D = its receptive radius: every
+# conv is 3x3) the output is within 2 * D * u of its magnitude.
+BF16_U = 2.0 ** -8
+
+
 def test_bfloat16_autocast_stays_close_to_float32():
     layers = render_layers(20, 20, specular=False)
     generator = strong_generator(2, scale=0.7)
-    exact = FullImageDenoiser(generator, None)(layers)
+    exact = FullImageDenoiser(generator, None, dtype=torch.float32)(layers)
     low = FullImageDenoiser(generator, None, dtype=torch.bfloat16)(layers)
     log_exact = diffuse_forward(exact.diffuse, layers["albedo"])
     log_low = diffuse_forward(low.diffuse, layers["albedo"])
     error = np.abs(log_low - log_exact).max()
     assert 0 < error < 0.05 * log_exact.max()  # bf16 really ran (not equal), and within its precision
+    # measured 0.006-0.013 of the maximum on four seeds; the derived bound is 2 * 8 * 2^-8 = 0.0625
+    assert error <= 2 * receptive_radius(generator) * BF16_U * np.abs(log_exact).max()
+    assert low.image.dtype == np.float32 and np.isfinite(low.image).all()
+
+
+def test_bfloat16_tiles_equal_the_untiled_image_up_to_one_bf16_rounding():
+    """With the full halo every output pixel sees the same inputs in a tile as in the whole image;
+    only a changed float32 accumulation order inside a kernel could flip one bf16 rounding of the
+    result, 2u of the output magnitude. One pixel less of halo breaks that bound."""
+    g = strong_generator(1).to(memory_format=torch.channels_last)
+    radius = receptive_radius(g)
+    x = (torch.rand(1, 3, 70, 90) * 3).contiguous(memory_format=torch.channels_last)
+    f = torch.rand(1, 7, 70, 90).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        untiled = g(x, f).float()
+        tiled = run_tiled(g, x, f, tile=32, halo=radius)
+        short = run_tiled(g, x, f, tile=32, halo=radius - 1)
+    bound = 2 * BF16_U * untiled.abs().max().item()
+    assert untiled.abs().max().item() > 1.0
+    assert (tiled - untiled).abs().max().item() <= bound
+    assert (short - untiled).abs().max().item() > bound  # measured 2.9x the bound: the check can fail
+
+
+def test_denoiser_in_bfloat16_tiles_like_the_untiled_image():
+    diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
+    layers = render_layers(70, 90)
+    tiled = FullImageDenoiser(diffuse, specular, tile=32, dtype=torch.bfloat16)(layers)
+    untiled = FullImageDenoiser(diffuse, specular, tile=512, dtype=torch.bfloat16)(layers)
+    assert tiled.tiles == 9 and untiled.tiles == 1
+    albedo = layers["albedo"]
+    for a, b in ((diffuse_forward(tiled.diffuse, albedo), diffuse_forward(untiled.diffuse, albedo)),
+                 (specular_forward(tiled.specular), specular_forward(untiled.specular))):
+        assert np.abs(a - b).max() <= 2 * BF16_U * np.abs(b).max()

@@ -24,7 +24,8 @@ TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16,
 SETTINGS = TrainSettings(steps=7, batch_size=2, l1_warmup_steps=2, critic_only_steps=1, critic_steps_per_g=2,
                          lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=3,
                          lr_milestones=(5,), val_every=3, val_patches=4, checkpoint_every=2, log_every=2,
-                         num_workers=0, threads=0, device="cpu", seed=1, max_bad_steps=3)
+                         num_workers=0, threads=0, device="cpu", precision="float32", seed=1, max_bad_steps=3)
+PRECISIONS = ("float32", "bfloat16")
 
 
 @pytest.fixture(scope="module")
@@ -114,11 +115,12 @@ def test_l1_only_ablation_never_touches_the_critic(store):
     assert_states_equal(trainer.critic.state_dict(), d0)
 
 
+@pytest.mark.parametrize("precision", PRECISIONS)
 @pytest.mark.parametrize("poison", ["nan_input", "overflowing_input"])
-def test_a_non_finite_batch_never_reaches_the_weights(store, poison):
+def test_a_non_finite_batch_never_reaches_the_weights(store, poison, precision):
     torch.manual_seed(0)
     settings = dataclasses.replace(SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1,
-                                   head_tail_start_step=0)
+                                   head_tail_start_step=0, precision=precision)
     trainer = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
     assert trainer.step(0, [batch_of(store)])[0]
     before = {"g": snapshot(trainer.generator), "d": snapshot(trainer.critic),
@@ -140,11 +142,13 @@ def test_a_non_finite_batch_never_reaches_the_weights(store, poison):
     assert (trainer.bad_total, trainer.bad_consecutive) == (1, 0)
 
 
-def test_stop_and_resume_equals_one_uninterrupted_run(store, tmp_path):
-    whole = train(store, tmp_path / "whole", SETTINGS, TINY, progress=False)
-    first = train(store, tmp_path / "split", dataclasses.replace(SETTINGS, steps=4), TINY, progress=False)
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_stop_and_resume_equals_one_uninterrupted_run(store, tmp_path, precision):
+    settings = dataclasses.replace(SETTINGS, precision=precision)
+    whole = train(store, tmp_path / "whole", settings, TINY, progress=False)
+    first = train(store, tmp_path / "split", dataclasses.replace(settings, steps=4), TINY, progress=False)
     assert first.step == 4 and load_checkpoint(first.checkpoint)["step"] == 4
-    second = train(store, tmp_path / "split", SETTINGS, TINY, resume=True, progress=False)
+    second = train(store, tmp_path / "split", settings, TINY, resume=True, progress=False)
     assert second.step == 7 and whole.branches == second.branches == ["diffuse", "specular"]
     a, b = load_checkpoint(whole.checkpoint), load_checkpoint(second.checkpoint)
     assert_states_equal(a["branches"], b["branches"])  # weights, Adam moments, schedulers, stream positions
@@ -156,6 +160,49 @@ def test_stop_and_resume_equals_one_uninterrupted_run(store, tmp_path):
     assert "diffuse/val_psnr" in csv_text and "specular/wasserstein" in csv_text
     assert csv_text.count("\n6,diffuse/l1,") == 1  # resumed logs are not duplicated
     assert list((tmp_path / "whole" / "tensorboard").glob("events.out.tfevents.*"))
+    assert a["precision"] == b["precision"] == precision
+
+
+def test_resume_in_another_precision_continues_and_says_so(store, tmp_path):
+    first = train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=4, val_every=0), TINY,
+                  progress=False)
+    assert load_checkpoint(first.checkpoint)["precision"] == "float32" and not first.notes
+    second = train(store, tmp_path / "run", dataclasses.replace(SETTINGS, precision="bfloat16", val_every=0),
+                   TINY, resume=True, progress=False)
+    assert second.step == 7 and load_checkpoint(second.checkpoint)["precision"] == "bfloat16"
+    assert any("ran in float32, this run continues in bfloat16" in note for note in second.notes)
+
+
+# bf16 keeps 8 significant bits (unit roundoff u = 2^-8); each of the generator's D = 2 * blocks + 4
+# chained 3x3 convs rounds its inputs and output (~2u of its output), so the outputs, and with them the
+# L1 loss, move by at most 2 * D * u of the output magnitude from float32.
+BF16_U = 2.0 ** -8
+
+
+def test_bfloat16_steps_run_in_bf16_and_keep_float32_weights_and_losses(store):
+    batch = batch_of(store)
+    runs = {}
+    for precision in PRECISIONS:
+        torch.manual_seed(0)
+        settings = dataclasses.replace(SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1,
+                                       head_tail_start_step=0, precision=precision)
+        trainer = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
+        dtypes = []
+        trainer.generator.register_forward_hook(lambda m, i, out: dtypes.append(out.dtype))
+        fake = trainer.generator(batch["noisy"], batch["features"]).detach()
+        ok, losses = trainer.step(0, [batch])
+        assert ok and all(np.isfinite(v) for v in losses.values())
+        runs[precision] = losses, fake
+        assert set(dtypes[1:]) == {getattr(torch, precision)}  # the generator ran in the asked precision
+        assert trainer.generator.training and trainer.critic.training
+        for net in (trainer.generator, trainer.critic):
+            assert {p.dtype for p in net.parameters()} == {torch.float32}  # master weights
+        for opt in trainer.optimizers.values():
+            assert {v.dtype for st in opt.state.values() for k, v in st.items() if k != "step"} == {torch.float32}
+    (low, fake), (exact, _) = runs["bfloat16"], runs["float32"]
+    bound = 2 * (2 * TINY.blocks + 4) * BF16_U * float(fake.abs().max())
+    assert 0 < abs(low["l1"] - exact["l1"]) <= bound  # bf16 really ran, and within its precision
+    assert trainer.memory_format == torch.channels_last
 
 
 def test_resume_refuses_changed_settings_and_a_missing_checkpoint(store, tmp_path):
@@ -279,5 +326,7 @@ def test_settings_check_names_the_field():
         dataclasses.replace(SETTINGS, branches=("diffuse", "glossy")).check()
     with pytest.raises(ValueError, match="^batch_size: must be an int >= 1"):
         dataclasses.replace(SETTINGS, batch_size=0).check()
+    with pytest.raises(ValueError, match="^precision: 'float16' is not one of"):
+        dataclasses.replace(SETTINGS, precision="float16").check()
     phases = [SETTINGS.phase(s) for s in range(5)]
     assert phases == ["l1", "l1", "critic", "adversarial", "adversarial"]

@@ -1,0 +1,49 @@
+"""Which float precision the networks run in, and the autocast / memory layout that goes with it.
+
+bfloat16 autocast keeps float32 master weights, optimiser states and (in losses.py) the losses and
+the gradient penalty; only conv/linear arithmetic runs in bf16, which has float32's exponent range,
+so no loss scaling is needed. oneDNN's bf16 convs want channels_last tensors (on CPUs and GPUs).
+"""
+from __future__ import annotations
+
+import contextlib
+
+import torch
+
+PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+def cpu_has_fast_bf16() -> bool:
+    """True where this CPU computes bf16 dot products in hardware (AVX512-BF16 or AMX), as torch
+    itself detects it; elsewhere oneDNN emulates bf16 and it is slower than float32."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def resolve_precision(name: str, device: torch.device) -> torch.dtype:
+    """The dtype for setting `name` ("auto", "float32", "bfloat16") on `device`: auto = bf16 on CUDA
+    and on CPUs with fast bf16, float32 elsewhere."""
+    if name == "auto":
+        fast = device.type == "cuda" or (device.type == "cpu" and cpu_has_fast_bf16())
+        return torch.bfloat16 if fast else torch.float32
+    if name not in PRECISIONS:
+        raise ValueError(f"precision: {name!r} is not one of {('auto', *PRECISIONS)}")
+    return PRECISIONS[name]
+
+
+def precision_name(dtype: torch.dtype) -> str:
+    return next(name for name, d in PRECISIONS.items() if d == dtype)
+
+
+def autocast_for(device: torch.device, dtype: torch.dtype) -> contextlib.AbstractContextManager:
+    """bf16 autocast where `dtype` is bfloat16, plain float32 otherwise."""
+    if dtype == torch.float32:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=dtype)
+
+
+def memory_format_for(device: torch.device, dtype: torch.dtype) -> torch.memory_format:
+    """channels_last for bf16 (oneDNN's fast layout) and on CUDA; NCHW for float32 on the CPU."""
+    return torch.channels_last if device.type == "cuda" or dtype != torch.float32 else torch.contiguous_format
