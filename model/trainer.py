@@ -336,8 +336,9 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
 
     last_step = max(start, settings.steps)
     selected, selection_notes = best.summary(last_step, {b: v["relmse"] for b, v in validation.items()})
+    notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
     for note in selection_notes:
-        say(note)
+        log.info(note)
     export_weights(weights_path, {b: best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
                    {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
                     "stage": stage, "step": last_step, "selected": selected, "store_fingerprint": fingerprint,
