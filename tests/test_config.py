@@ -79,3 +79,13 @@ def test_model_and_train_sections_match_the_settings_factories():
 def test_model_and_train_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_config(None, [override])
+
+
+def test_pretrain_corpus_is_disjoint_from_the_default_corpus_and_has_every_family():
+    from admc.pipeline.render import corpus
+    from admc.pipeline.scenes import FAMILIES
+
+    pretrain, default = load_config(REPO / "configs" / "pretrain.toml"), load_config()
+    specs = corpus(pretrain)
+    assert len(specs) >= 100 and {s.family for s in specs} == set(FAMILIES)
+    assert not {(s.family, s.seed) for s in specs} & {(s.family, s.seed) for s in corpus(default)}
