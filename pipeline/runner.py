@@ -154,7 +154,9 @@ def _run_distributed(pending, published, cache, scheduler, workers, bar) -> dict
 
     if scheduler == "processes":
         cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+                               # CRITICAL: a task's failure comes back as its value; what the workers log at
+                               # shutdown (a heartbeat racing the closing scheduler) is noise after a good run
+                               dashboard_address=None, silence_logs=logging.CRITICAL)
         client = Client(cluster)
     else:
         try:
