@@ -29,7 +29,7 @@ from admc.stores.patches import PatchReader, PatchStoreError
 from .branch import BranchTrainer
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
-from .selection import BestNetworks
+from .selection import SELECTION_METRIC, BestNetworks
 from .precision import precision_name
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
@@ -279,7 +279,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         for b, rows in val.items():
             validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device, trainers[b].dtype)
             metrics.log(step, {f"{b}/val_{k}": v for k, v in validation[b].items()})
-            best.offer(b, step, validation[b]["relmse"], trainers[b].generator, trainers[b].critic)
+            best.offer(b, step, validation[b][SELECTION_METRIC], trainers[b].generator, trainers[b].critic)
 
     last_saved = start if resume else None
     # A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
@@ -335,7 +335,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         del streams
 
     last_step = max(start, settings.steps)
-    selected, selection_notes = best.summary(last_step, {b: v["relmse"] for b, v in validation.items()})
+    selected, selection_notes = best.summary(last_step, {b: v[SELECTION_METRIC] for b, v in validation.items()})
     notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
     for note in selection_notes:
         log.info(note)
