@@ -94,8 +94,15 @@ class EvalConfig:
     optix: str
     repeats: int
     warmup: int
+    test_families: tuple[str, ...]
+    test_scenes_per_family: int
+    test_seed: int
 
     def check(self) -> None:
+        _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",
+                 f"must be >= 0, got {self.test_scenes_per_family}")
+        _require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "eval.test_families",
+                 "empty but eval.test_scenes_per_family > 0")
         _require(self.split in ("train", "val", "test"), "eval.split", f"must be train, val or test, got {self.split!r}")
         _require(self.oidn_quality in ("fast", "balanced", "high"), "eval.oidn_quality",
                  f"must be fast, balanced or high, got {self.oidn_quality!r}")
@@ -277,4 +284,15 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
         except ValueError as exc:  # model/ settings say "<field>: <problem>"
             raise ConfigError(f"config key '{field.name}.{exc}".replace(":", "':", 1)) from None
         sections[field.name] = section
-    return Config(**sections)
+    config = Config(**sections)
+    _check_test_set_apart(config)
+    return config
+
+
+def _check_test_set_apart(config: Config) -> None:
+    """The dedicated test scenes must not be the training corpus's own scenes (same seed, same family)."""
+    shared = set(config.corpus.families) & set(config.eval.test_families)
+    _require(not (config.eval.test_scenes_per_family and config.corpus.n_scenes and shared
+                  and config.eval.test_seed == config.corpus.seed), "eval.test_seed",
+             f"equals corpus.seed ({config.corpus.seed}): the test scenes of {sorted(shared)} would be "
+             f"training scenes; choose a seed no training corpus uses")

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.errors import AdmcError
-from admc.pipeline import evaluate, render, report_html, tile
+from admc.pipeline import evaluate, render, report_html, scenes, tile
 from admc.pipeline.config import Config
 from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
 from admc.pipeline.metrics import METRICS
@@ -29,9 +29,16 @@ class EvalOutcome:
 
 
 def eval_scenes(cfg: Config) -> list[SceneSpec]:
-    """The corpus scenes assigned to the eval split (the same stable per-scene rule as tiling)."""
-    return [s for s in render.corpus(cfg)
-            if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
+    """The corpus scenes assigned to the eval split (the same stable per-scene rule as tiling), and for
+    the test split the dedicated test scenes: a fixed number per family, so every family is measured
+    on enough images whatever the corpus size."""
+    chosen = [s for s in render.corpus(cfg)
+              if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
+    if cfg.eval.split == "test":
+        families = list(cfg.eval.test_families)
+        chosen += scenes.procedural_corpus(families, cfg.eval.test_scenes_per_family * len(families),
+                                           cfg.eval.test_seed, cfg.render.resolution)
+    return chosen
 
 
 def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]:
@@ -67,7 +74,8 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     specs = eval_scenes(cfg)
     if not specs:
         raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "
-                             f"(tile.split = {list(cfg.tile.split)}); add scenes or change tile.split")
+                             f"(tile.split = {list(cfg.tile.split)}){' and eval.test_scenes_per_family is 0' if cfg.eval.split == 'test' else ''}; "
+                             f"add scenes or change tile.split")
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(cfg, progress, specs).renders_dir
     images = evaluate.find_test_images(renders_dir, scene_ids)

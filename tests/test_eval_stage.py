@@ -17,7 +17,8 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 def overrides(workdir, split="[0.0, 0.0, 1.0]"):
     return [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2, 4]",
-            "render.reference_spp=32", "corpus.n_scenes=2", f"tile.split={split}", "eval.repeats=1"]
+            "render.reference_spp=32", "corpus.n_scenes=2", f"tile.split={split}", "eval.repeats=1",
+            "eval.test_scenes_per_family=0"]
 
 
 def test_eval_writes_tables_plot_and_html(tmp_path, variant):
@@ -75,7 +76,8 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
     scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
     cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
                              "render.reference_spp=16", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
-                             "corpus.xml_resolution='film'", "tile.split=[0.0, 0.0, 1.0]", "eval.repeats=1"])
+                             "corpus.xml_resolution='film'", "tile.split=[0.0, 0.0, 1.0]", "eval.repeats=1",
+                             "eval.test_scenes_per_family=0"])
     outcome = run_eval(cfg, progress=False)
     assert outcome.scene_ids == ["xml-kitchen"]
     (scene,) = outcome.result.scenes
