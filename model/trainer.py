@@ -6,11 +6,15 @@ pretraining and adversarial phases). The checkpoint holds everything the next st
 bit-identically on the CPU. The store's transform spec must equal the one the weights were trained
 on (checkpoint, init weights, or this code's for a fresh pretrain); a resumed run also needs the very
 same store (fingerprint).
+
+Under data-parallel training (several processes, see distributed.py) every rank runs this same code on
+its shard of each global batch of train.batch_size; rank 0 alone validates, selects, writes and speaks.
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import random
 import sys
 import time
@@ -20,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 from tqdm import tqdm
 
 from admc.errors import AdmcError, DeviceError, TrainingError
@@ -27,6 +32,7 @@ from admc.stores.checkpoints import export_weights, load_checkpoint, read_networ
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from .branch import BranchTrainer
+from .distributed import RankFailed, Ranks, broadcast_modules, current, rank_device
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
@@ -62,6 +68,7 @@ class TrainResult:
     validation: dict[str, dict[str, float]]
     notes: list[str] = field(default_factory=list)
     selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
+    rank: int = 0  # the process that returns it; only rank 0's speaks for the run
 
 
 def resolve_device(name: str) -> torch.device:
@@ -181,6 +188,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     model.check()
     if stage not in STAGES:
         raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
+    check_world(settings, current().world)
     run = _Run(Path(store_path), Path(out_dir), settings, model, stage, init_from, progress)
     checkpoint, init_nets, transform, source = _starting_point(run, resume)
     readers = _open_train(run, transform, source)
@@ -193,8 +201,17 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     run.trainers = {b: BranchTrainer(b, model, settings, run.patch_size, run.device) for b in readers}
     run.precision = precision_name(next(iter(run.trainers.values())).dtype)
     start = _restore(run, checkpoint, init_nets)
+    for trainer in run.trainers.values():
+        broadcast_modules(trainer.generator, trainer.critic)
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
+
+
+def check_world(settings: TrainSettings, world: int) -> None:
+    """The global batch must split evenly across `world` training processes."""
+    if settings.batch_size % world:
+        raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
+                            f"split across {world} training processes; use a multiple of {world}")
 
 
 @dataclass
@@ -221,9 +238,13 @@ class _Run:
     def __post_init__(self) -> None:
         self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
         self.weights_path = self.out_dir / WEIGHTS_NAME
-        self.device = resolve_device(self.settings.device)
-        if self.device.type == "cpu" and self.settings.threads:
-            torch.set_num_threads(self.settings.threads)
+        self.ranks: Ranks = current()
+        self.progress = self.progress and self.ranks.lead  # the other ranks stay silent
+        self.device = rank_device(resolve_device(self.settings.device), self.ranks)
+        if self.device.type == "cpu" and (self.settings.threads or self.ranks.local_world > 1):
+            # processes sharing the CPU share its cores (torch would give each all of them)
+            share = max(1, (os.cpu_count() or 1) // self.ranks.local_world)
+            torch.set_num_threads(self.settings.threads or share)
         self.fingerprint = store_fingerprint(self.store) if (self.store / "zarr.json").is_file() else None
 
     def say(self, message: str) -> None:
@@ -327,9 +348,13 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
     """Steps start..settings.steps: every branch once per step, logging, validation and checkpoints."""
     settings = run.settings
     pin = run.device.type == "cuda"
+    shard = (run.ranks.rank, run.ranks.world)
     streams = {b: iter(train_loader(readers[b], settings.batch_size, branch_seed(settings.seed, b),
-                                    t.batches, settings.num_workers, pin)) for b, t in run.trainers.items()}
-    run.metrics = MetricsLog(run.out_dir, resume_step=start if resume else None)
+                                    t.batches, settings.num_workers, pin, shard)) for b, t in run.trainers.items()}
+    if run.ranks.lead:
+        run.metrics = MetricsLog(run.out_dir, resume_step=start if resume else None)
+    else:
+        val = {}  # rank 0 validates (the others wait for it in the next step's all-reduce)
     window = _Window(run, start)
     last_saved = start if resume else None
     try:
@@ -351,11 +376,18 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
                 _validate_all(run, val, done)
             streak = any(t.bad_consecutive for t in run.trainers.values())
             if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
-                save_checkpoint(run.checkpoint_path, run.state(done))
+                if run.ranks.lead:
+                    save_checkpoint(run.checkpoint_path, run.state(done))
                 last_saved = done
+    except dist.DistError as exc:
+        kept = f"step {last_saved}" if last_saved is not None else "none written yet"
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RankFailed(f"training process rank {run.ranks.rank} of {run.ranks.world} lost contact with the "
+                         f"others ({first_line}); last checkpoint: {run.checkpoint_path} ({kept})") from None
     finally:
         window.close()
-        run.metrics.close()
+        if run.metrics is not None:
+            run.metrics.close()
         del streams
 
 
@@ -388,7 +420,7 @@ class _Window:
     def step_done(self, done: int) -> None:
         run, settings = self.run, self.run.settings
         self.bar.update(1)
-        if done % settings.log_every and done != settings.steps:
+        if not run.ranks.lead or (done % settings.log_every and done != settings.steps):
             return
         values = self.averages.pop()
         values["patches_per_s"] = self.patches / max(time.perf_counter() - self.start, 1e-9)
@@ -416,14 +448,15 @@ def _finish(run: _Run, start: int) -> TrainResult:
     for note in selection_notes:
         log.info(note)
     trainers = run.trainers
-    export_weights(run.weights_path, {b: run.best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
-                   {"model": dataclasses.asdict(run.model), "transform": run.transform, "patch_size": run.patch_size,
-                    "stage": run.stage, "step": last_step, "selected": selected,
-                    "store_fingerprint": run.fingerprint, "precision": run.precision})
+    if run.ranks.lead:
+        export_weights(run.weights_path, {b: run.best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
+                       {"model": dataclasses.asdict(run.model), "transform": run.transform,
+                        "patch_size": run.patch_size, "stage": run.stage, "step": last_step, "selected": selected,
+                        "store_fingerprint": run.fingerprint, "precision": run.precision})
     return TrainResult(out_dir=run.out_dir, checkpoint=run.checkpoint_path, weights=run.weights_path,
                        step=last_step, branches=list(trainers), skipped_branches=run.skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=run.last_losses,
-                       validation=run.validation, notes=run.notes, selected=selected)
+                       validation=run.validation, notes=run.notes, selected=selected, rank=run.ranks.rank)
 
 
 def _postfix(values: dict[str, float]) -> dict[str, str]:
