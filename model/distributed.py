@@ -19,6 +19,7 @@ parent, the admc command, can name the rank that failed in one clear message.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
@@ -32,7 +33,7 @@ import torch.multiprocessing as mp
 from torch._utils import _flatten_dense_tensors, _unflatten_dense_tensors
 from tqdm import tqdm
 
-from admc.errors import AdmcError
+from admc.errors import AdmcError, DeviceError
 
 
 class RankFailed(AdmcError, RuntimeError):
@@ -80,12 +81,26 @@ def rank_device(device: torch.device, ranks: Ranks) -> torch.device:
     return device
 
 
+@contextlib.contextmanager
+def _collective():
+    """A collective that fails raises RankFailed: another rank is gone (gloo raises a bare RuntimeError,
+    nccl a DistBackendError, which is one too; the tensors are admc's own, so nothing else fails there)."""
+    try:
+        yield
+    except RuntimeError as exc:
+        ranks = current()
+        said = " ".join(str(exc).split())[:200] or type(exc).__name__
+        raise RankFailed(f"training process rank {ranks.rank} of {ranks.world} lost contact with the others "
+                         f"({said})") from None
+
+
 def agree(ok: bool, device: torch.device) -> bool:
     """True on every rank when `ok` is true on every rank: a step is skipped everywhere or nowhere."""
     if current().world == 1:
         return ok
     flag = torch.tensor([1 if ok else 0], device=device)
-    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    with _collective():
+        dist.all_reduce(flag, op=dist.ReduceOp.MIN)
     return bool(flag.item())
 
 
@@ -96,7 +111,8 @@ def average_gradients(params: list[torch.nn.Parameter]) -> None:
     if world == 1 or not grads:
         return
     flat = _flatten_dense_tensors([g.contiguous() for g in grads])
-    dist.all_reduce(flat)
+    with _collective():
+        dist.all_reduce(flat)
     flat /= world
     for grad, mean in zip(grads, _unflatten_dense_tensors(flat, grads)):
         grad.copy_(mean)
@@ -108,7 +124,8 @@ def average_values(values: dict[str, torch.Tensor], device: torch.device) -> dic
         return values
     keys = sorted(values)
     stacked = torch.stack([values[k].detach().float().to(device) for k in keys])
-    dist.all_reduce(stacked)
+    with _collective():
+        dist.all_reduce(stacked)
     return dict(zip(keys, stacked / current().world))
 
 
@@ -116,9 +133,10 @@ def broadcast_modules(*modules: torch.nn.Module) -> None:
     """Rank 0's parameters and buffers on every rank (they are equal already when seeded alike)."""
     if current().world == 1:
         return
-    for module in modules:
-        for tensor in [*module.parameters(), *module.buffers()]:
-            dist.broadcast(tensor.data, 0)
+    with _collective():
+        for module in modules:
+            for tensor in [*module.parameters(), *module.buffers()]:
+                dist.broadcast(tensor.data, 0)
 
 
 def share(obj: Any) -> Any:
@@ -126,13 +144,9 @@ def share(obj: Any) -> Any:
     if current().world == 1:
         return obj
     box = [obj]
-    dist.broadcast_object_list(box, 0)
+    with _collective():
+        dist.broadcast_object_list(box, 0)
     return box[0]
-
-
-def barrier() -> None:
-    if current().world > 1:
-        dist.barrier()
 
 
 def _free_port() -> int:
@@ -170,7 +184,7 @@ def launch(nproc: int, device: torch.device, fn: Callable, kwargs: dict) -> Any:
     rank's own error before another's report of losing it; a rank that dies (a signal, an exit) is
     named in RankFailed. A bug in a rank keeps its traceback (torch's ProcessRaisedException)."""
     if device.type == "cuda" and nproc > torch.cuda.device_count():
-        raise RankFailed(f"--nproc {nproc}: one process per GPU, but this machine has {torch.cuda.device_count()}")
+        raise DeviceError(f"--nproc {nproc}: one process per GPU, but this machine has {torch.cuda.device_count()}")
     queue = mp.get_context("spawn").SimpleQueue()
     # torch logs a warning per rank it stops after a failure; RankFailed says what happened instead
     logging.getLogger("torch.multiprocessing.spawn").setLevel(logging.ERROR)

@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.distributed as dist
 from tqdm import tqdm
 
 from admc.errors import AdmcError, DeviceError, TrainingError
@@ -379,11 +378,9 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
                 if run.ranks.lead:
                     save_checkpoint(run.checkpoint_path, run.state(done))
                 last_saved = done
-    except dist.DistError as exc:
+    except RankFailed as exc:
         kept = f"step {last_saved}" if last_saved is not None else "none written yet"
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise RankFailed(f"training process rank {run.ranks.rank} of {run.ranks.world} lost contact with the "
-                         f"others ({first_line}); last checkpoint: {run.checkpoint_path} ({kept})") from None
+        raise RankFailed(f"{exc}; last checkpoint: {run.checkpoint_path} ({kept})") from None
     finally:
         window.close()
         if run.metrics is not None:

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from conftest import build_tiny_store, tiny_store_overrides
+from rank_helpers import outlive_a_peer
 from admc.errors import TrainingError
 from admc.model import distributed
 from admc.model.settings import ModelSettings, TrainSettings
@@ -85,6 +86,11 @@ def test_a_batch_that_does_not_split_is_refused_before_anything_runs(tiny):
     with pytest.raises(TrainingError, match=r"'train.batch_size'.*3 does not split across 2 training processes"):
         run_training(cfg, "pretrain", progress=False, nproc=2)
     assert not train_dir(cfg, "pretrain").exists()
+
+
+def test_a_rank_that_loses_its_peer_says_so():
+    message = distributed.launch(2, CPU, outlive_a_peer, {})
+    assert message.startswith("training process rank 0 of 2 lost contact with the others ("), message
 
 
 def cli_settings(workdir, steps):
