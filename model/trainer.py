@@ -187,7 +187,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     model.check()
     if stage not in STAGES:
         raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
-    check_world(settings, current().world)
+    check_world(settings, model, current().world)
     run = _Run(Path(store_path), Path(out_dir), settings, model, stage, init_from, progress)
     checkpoint, init_nets, transform, source = _starting_point(run, resume)
     readers = _open_train(run, transform, source)
@@ -206,11 +206,16 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     return _finish(run, start)
 
 
-def check_world(settings: TrainSettings, world: int) -> None:
-    """The global batch must split evenly across `world` training processes."""
+def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> None:
+    """What `world` training processes need: a global batch that splits evenly, and no batch norm in the
+    critic (its statistics would cover each process's slice, not the batch one process normalises over)."""
     if settings.batch_size % world:
         raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
                             f"split across {world} training processes; use a multiple of {world}")
+    if world > 1 and model.critic_norm == "batch":
+        raise TrainingError(f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
+                            "training processes' slices of the batch, not over the whole batch; use \"layer\" "
+                            "(the default) or \"none\", or train in one process")
 
 
 @dataclass

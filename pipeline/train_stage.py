@@ -47,7 +47,7 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
     if nproc > 1 and ranks.world > 1:
         raise StageError(f"--nproc {nproc}: this process is already rank {ranks.rank} of {ranks.world} "
                          "(torchrun); leave --nproc out")
-    check_world(cfg.train, max(nproc, ranks.world))
+    check_world(cfg.train, cfg.model, max(nproc, ranks.world))
     prepared = _prepare(cfg, stage, init_from, restart, progress) if ranks.lead else None
     store, init_from, resume, notes = distributed.share(prepared)
     kwargs = dict(store_path=store, out_dir=train_dir(cfg, stage), settings=cfg.train, model=cfg.model,

@@ -81,9 +81,12 @@ def test_two_ranks_take_the_single_process_steps(tiny, tmp_path):
     assert ranks.rank == 0 and ranks.weights.is_file()
 
 
-def test_a_batch_that_does_not_split_is_refused_before_anything_runs(tiny):
-    cfg = load_config(None, [*cli_settings(tiny[0], steps=2), "train.batch_size=3"])
-    with pytest.raises(TrainingError, match=r"'train.batch_size'.*3 does not split across 2 training processes"):
+@pytest.mark.parametrize("setting, message", [
+    ("train.batch_size=3", r"'train.batch_size'.*3 does not split across 2 training processes"),
+    ("model.critic_norm=batch", r"'model.critic_norm'.*each of the 2 training processes' slices")])
+def test_what_does_not_split_is_refused_before_anything_runs(tiny, setting, message):
+    cfg = load_config(None, [*cli_settings(tiny[0], steps=2), setting])
+    with pytest.raises(TrainingError, match=message):
         run_training(cfg, "pretrain", progress=False, nproc=2)
     assert not train_dir(cfg, "pretrain").exists()
 
