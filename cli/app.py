@@ -143,18 +143,23 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
           stage: Annotated[Stage, typer.Option(help="pretrain on the corpus, or finetune from pretrained weights.")] = Stage.pretrain,
           init: Annotated[Optional[Path], typer.Option(help="finetune from this checkpoint or weights file "
                                                             "(default: the shipped weights matching the model config).")] = None,
-          restart: Annotated[bool, typer.Option("--restart", help="discard this stage's existing run and start over.")] = False) -> None:
+          restart: Annotated[bool, typer.Option("--restart", help="discard this stage's existing run and start over.")] = False,
+          nproc: Annotated[int, typer.Option(min=1, help="data-parallel training in N processes on this machine (one per GPU, "
+                                                         "or sharing the CPU); under torchrun leave it out.")] = 1) -> None:
     """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed).
 
-    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer)."""
+    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer).
+    Several processes (--nproc N, or `torchrun --nproc_per_node N -m admc.cli train ...`) split each batch."""
     from admc.pipeline.train_stage import interrupted_note, run_training
 
     cfg = _load(config, set_, scheduler)
     try:
-        result = run_training(cfg, stage.value, init_from=init, restart=restart)
+        result = run_training(cfg, stage.value, init_from=init, restart=restart, nproc=nproc)
     except KeyboardInterrupt:
         err.print(interrupted_note(cfg, stage.value), markup=False, highlight=False)
         raise typer.Exit(130) from None
+    if result.rank:
+        return  # under torchrun, rank 0 reports the run
     for note in result.notes:
         console.print(note, markup=False)
     table = Table(title=f"{stage.value}: step {result.step}")

@@ -6,7 +6,9 @@ head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code
 each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
 so a bad batch never reaches the weights; the step counts as bad. The networks run in
 train.precision (bf16 autocast + channels_last, see precision.py); the losses and the gradient
-penalty are float32 whatever it is (losses.py).
+penalty are float32 whatever it is (losses.py). Under data-parallel training (distributed.py) each
+rank steps on its shard of the batch: the gradients are averaged over the ranks before the finite check
+and the optimiser step, and the ranks agree on skipping a step, so they stay identical.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from torch import Tensor, nn
 from admc.stores.checkpoints import load_network
 
 from .critic import Critic
+from .distributed import agree, average_gradients, average_values, current
 from .generator import build_generator
 from .losses import critic_loss, generator_loss
 from .precision import autocast_for, memory_format_for, resolve_precision
@@ -53,6 +56,8 @@ class BranchTrainer:
     def __init__(self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int,
                  device: torch.device):
         self.branch, self.settings, self.device = branch, settings, device
+        ranks = current()
+        self.shard = (ranks.rank, ranks.world)  # this process's slice of each global batch
         self.dtype = resolve_precision(settings.precision, device)
         self.memory_format = memory = memory_format_for(device, self.dtype)
         self.generator = build_generator(model.generator_config()).to(device, memory_format=memory)
@@ -84,11 +89,12 @@ class BranchTrainer:
         opt = self.optimizers["critic"]
         opt.zero_grad(set_to_none=True)
         with autocast_for(self.device, self.dtype):
-            loss, parts = critic_loss(self.critic, batch["reference"], fake, self.settings.gp_weight)
+            loss, parts = critic_loss(self.critic, batch["reference"], fake, self.settings.gp_weight, self.shard)
         parts["critic_loss"] = loss.detach()
-        if not torch.isfinite(loss):
+        if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts
         loss.backward()
+        average_gradients(list(self.critic.parameters()))
         if not _grads_finite(list(self.critic.parameters())):
             opt.zero_grad(set_to_none=True)
             return False, parts
@@ -106,9 +112,10 @@ class BranchTrainer:
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
                                          adversarial)
         parts["generator_loss"] = loss.detach()
-        if not torch.isfinite(loss):
+        if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts
         loss.backward()
+        average_gradients(list(self.generator.parameters()))
         if not _grads_finite(list(self.generator.parameters())):
             return False, parts
         self.optimizers["g_body"].step()
@@ -130,7 +137,7 @@ class BranchTrainer:
         self.critic.train()
         # A non-finite input is refused before any forward pass: even a skipped update would
         # otherwise push it into BatchNorm running statistics (critic_norm = "batch").
-        ok = all(bool(torch.isfinite(t).all()) for b in batches for t in b.values())
+        ok = agree(all(bool(torch.isfinite(t).all()) for b in batches for t in b.values()), self.device)
         parts: dict[str, Tensor] = {}
         if ok and phase in ("critic", "adversarial"):
             for batch in batches:
@@ -152,7 +159,7 @@ class BranchTrainer:
         else:
             self.bad_total += 1
             self.bad_consecutive += 1
-        return ok, {k: float(v) for k, v in parts.items()}
+        return ok, {k: float(v) for k, v in average_values(parts, self.device).items()}
 
     def learning_rates(self) -> dict[str, float]:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}

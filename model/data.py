@@ -83,13 +83,23 @@ class PatchDataset(Dataset):
 class BatchStream:
     """Endless batches of (row, augmentation) pairs: epochs of seeded permutations, batches taken
     across epoch boundaries. Batch b is the same for every run with the same (seed, n_rows, batch_size).
+
+    With `shard` = (rank, world), this rank gets only its slice of each (global) batch: rank r's
+    batch_size / world consecutive pairs. The ranks together see exactly the single-process stream,
+    each reading only its own rows, and a resumed rank continues it at the same global batch.
     """
 
-    def __init__(self, n_rows: int, batch_size: int, seed: int, start_batch: int = 0, augment: bool = True):
+    def __init__(self, n_rows: int, batch_size: int, seed: int, start_batch: int = 0, augment: bool = True,
+                 shard: tuple[int, int] = (0, 1)):
         if n_rows < 1:
             raise ValueError("BatchStream: no rows to sample")
+        rank, world = shard
+        if batch_size % world or not 0 <= rank < world:
+            raise ValueError(f"BatchStream: a batch of {batch_size} has no shard {rank} of {world}")
         self.n_rows, self.batch_size, self.seed = n_rows, batch_size, seed
         self.start_batch, self.augment = start_batch, augment
+        per_rank = batch_size // world
+        self.slice = slice(rank * per_rank, (rank + 1) * per_rank)
 
     def _epoch(self, epoch: int) -> tuple[np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.seed, epoch])
@@ -109,7 +119,7 @@ class BatchStream:
                     order, codes = self._epoch(epoch)
                 batch.append((int(order[offset]), int(codes[offset])))
                 offset += 1
-            yield batch
+            yield batch[self.slice]
 
 
 def branch_seed(seed: int, branch: str) -> int:
@@ -118,13 +128,14 @@ def branch_seed(seed: int, branch: str) -> int:
 
 
 def train_loader(reader: PatchReader, batch_size: int, seed: int, start_batch: int = 0,
-                 num_workers: int = 0, pin_memory: bool = False) -> DataLoader:
-    """An endless DataLoader over the reader, starting at batch `start_batch` of the seeded stream.
+                 num_workers: int = 0, pin_memory: bool = False, shard: tuple[int, int] = (0, 1)) -> DataLoader:
+    """An endless DataLoader over the reader, starting at batch `start_batch` of the seeded stream
+    (this rank's `shard` of each batch under data-parallel training).
 
     The loader gets its own torch.Generator, so creating its iterator does not consume the global
     torch RNG (which the gradient penalty uses): a resumed run stays bit-identical.
     """
-    stream = BatchStream(len(reader), batch_size, seed, start_batch)
+    stream = BatchStream(len(reader), batch_size, seed, start_batch, shard=shard)
     return DataLoader(PatchDataset(reader), batch_sampler=stream, num_workers=num_workers,
                       pin_memory=pin_memory, persistent_workers=False,
                       generator=torch.Generator().manual_seed(seed),

@@ -32,8 +32,12 @@ def generator_loss(fake: Tensor, real: Tensor, critic_fake: Tensor | None, l1_we
     return l1_weight * l1 + adv_weight * adv, parts
 
 
-def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
+def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor, shard: tuple[int, int] = (0, 1)) -> Tensor:
     """WGAN-GP penalty mean((||grad_x D(x)||_2 - 1)^2) at per-sample uniform interpolates of real and fake.
+
+    With `shard` = (rank, world) of a data-parallel step, the batch is this rank's slice of the global
+    batch: every rank draws the whole global batch's mixing weights and takes its slice, so the ranks
+    together use (and consume the RNG for) exactly the weights a single process would.
 
     Runs with autocast off and float32 inputs: the gradient norm of a bf16/fp16 critic is too
     coarse (and overflows in fp16), and it is what enforces the Lipschitz constraint. The graph
@@ -43,7 +47,10 @@ def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
         raise ValueError(f"gradient_penalty: real {tuple(real.shape)} and fake {tuple(fake.shape)} differ in shape")
     with torch.autocast(device_type=real.device.type, enabled=False):
         real32, fake32 = real.detach().float(), fake.detach().float()
-        alpha = torch.rand((real.shape[0],) + (1,) * (real.ndim - 1), device=real.device, dtype=torch.float32)
+        rank, world = shard
+        n = real.shape[0]
+        alpha = torch.rand((n * world,) + (1,) * (real.ndim - 1), device=real.device, dtype=torch.float32)
+        alpha = alpha[rank * n:(rank + 1) * n]
         interpolates = (alpha * real32 + (1 - alpha) * fake32).requires_grad_(True)
         scores = critic(interpolates).float()
         (grad,) = torch.autograd.grad(scores.sum(), interpolates, create_graph=True)
@@ -52,14 +59,14 @@ def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
         return (norm - 1).pow(2).mean()
 
 
-def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float = 10.0
-                ) -> tuple[Tensor, dict[str, Tensor]]:
+def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float = 10.0,
+                shard: tuple[int, int] = (0, 1)) -> tuple[Tensor, dict[str, Tensor]]:
     """Critic loss and its detached parts: "wasserstein" (mean D(real) - mean D(fake), the
     distance estimate), "gp", "critic_real", "critic_fake". `fake` is detached (critic step only)."""
     fake = fake.detach()
     d_real = critic(real).float().mean()
     d_fake = critic(fake).float().mean()
-    gp = gradient_penalty(critic, real, fake)
+    gp = gradient_penalty(critic, real, fake, shard)
     loss = (d_fake - d_real) / 2 + gp_weight * gp
     parts = {"wasserstein": (d_real - d_fake).detach(), "gp": gp.detach(),
              "critic_real": d_real.detach(), "critic_fake": d_fake.detach()}

@@ -6,11 +6,15 @@ pretraining and adversarial phases). The checkpoint holds everything the next st
 bit-identically on the CPU. The store's transform spec must equal the one the weights were trained
 on (checkpoint, init weights, or this code's for a fresh pretrain); a resumed run also needs the very
 same store (fingerprint).
+
+Under data-parallel training (several processes, see distributed.py) every rank runs this same code on
+its shard of each global batch of train.batch_size; rank 0 alone validates, selects, writes and speaks.
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import random
 import sys
 import time
@@ -27,6 +31,7 @@ from admc.stores.checkpoints import export_weights, load_checkpoint, read_networ
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from .branch import BranchTrainer
+from .distributed import RankFailed, Ranks, broadcast_modules, current, rank_device
 from .data import branch_seed, load_rows, store_fingerprint, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
@@ -62,6 +67,7 @@ class TrainResult:
     validation: dict[str, dict[str, float]]
     notes: list[str] = field(default_factory=list)
     selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
+    rank: int = 0  # the process that returns it; only rank 0's speaks for the run
 
 
 def resolve_device(name: str) -> torch.device:
@@ -181,172 +187,278 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     model.check()
     if stage not in STAGES:
         raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
-    store, out_dir = Path(store_path), Path(out_dir)
-    checkpoint_path, weights_path = out_dir / CHECKPOINT_NAME, out_dir / WEIGHTS_NAME
-    notes: list[str] = []
+    check_world(settings, model, current().world)
+    run = _Run(Path(store_path), Path(out_dir), settings, model, stage, init_from, progress)
+    checkpoint, init_nets, transform, source = _starting_point(run, resume)
+    readers = _open_train(run, transform, source)
+    if resume:
+        _check_resumable(checkpoint, run.checkpoint_path, settings, model, stage, run.fingerprint)
+    run.transform = transform
+    run.patch_size = int(next(iter(readers.values())).attrs["patch_size"])
+    val = _load_val(run, readers, transform, source)
+    _seed_everything(settings.seed)
+    run.trainers = {b: BranchTrainer(b, model, settings, run.patch_size, run.device) for b in readers}
+    run.precision = precision_name(next(iter(run.trainers.values())).dtype)
+    start = _restore(run, checkpoint, init_nets)
+    for trainer in run.trainers.values():
+        broadcast_modules(trainer.generator, trainer.critic)
+    _loop(run, readers, val, start, resume)
+    return _finish(run, start)
 
-    def say(message: str) -> None:
-        notes.append(message)
+
+def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> None:
+    """What `world` training processes need: a global batch that splits evenly, and no batch norm in the
+    critic (its statistics would cover each process's slice, not the batch one process normalises over)."""
+    if settings.batch_size % world:
+        raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
+                            f"split across {world} training processes; use a multiple of {world}")
+    if world > 1 and model.critic_norm == "batch":
+        raise TrainingError(f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
+                            "training processes' slices of the batch, not over the whole batch; use \"layer\" "
+                            "(the default) or \"none\", or train in one process")
+
+
+@dataclass
+class _Run:
+    """What every part of one training run shares: its inputs, networks, logs and what it has said."""
+    store: Path
+    out_dir: Path
+    settings: TrainSettings
+    model: ModelSettings
+    stage: str
+    init_from: str | Path | None
+    progress: bool
+    notes: list[str] = field(default_factory=list)
+    trainers: dict[str, BranchTrainer] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    best: BestNetworks = field(default_factory=BestNetworks)
+    validation: dict[str, dict[str, float]] = field(default_factory=dict)
+    last_losses: dict[str, dict[str, float]] = field(default_factory=dict)
+    transform: dict | None = None
+    patch_size: int = 0
+    precision: str = ""
+    metrics: MetricsLog | None = None
+
+    def __post_init__(self) -> None:
+        self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
+        self.weights_path = self.out_dir / WEIGHTS_NAME
+        self.ranks: Ranks = current()
+        self.progress = self.progress and self.ranks.lead  # the other ranks stay silent
+        self.device = rank_device(resolve_device(self.settings.device), self.ranks)
+        if self.device.type == "cpu" and (self.settings.threads or self.ranks.local_world > 1):
+            # processes sharing the CPU share its cores (torch would give each all of them)
+            share = max(1, (os.cpu_count() or 1) // self.ranks.local_world)
+            torch.set_num_threads(self.settings.threads or share)
+        self.fingerprint = store_fingerprint(self.store) if (self.store / "zarr.json").is_file() else None
+
+    def say(self, message: str) -> None:
+        self.notes.append(message)
         log.info(message)
-        if progress:
+        if self.progress:
             tqdm.write(message)
 
-    device = resolve_device(settings.device)
-    if device.type == "cpu" and settings.threads:
-        torch.set_num_threads(settings.threads)
-    fingerprint = store_fingerprint(store) if (store / "zarr.json").is_file() else None
-    checkpoint, init_nets = None, None
-    if resume:
-        checkpoint = load_checkpoint(checkpoint_path)
-        transform, source = checkpoint["transform"], f"checkpoint {checkpoint_path}"
-    else:
-        if checkpoint_path.exists():
-            raise TrainingError(f"{checkpoint_path} exists: pass resume=True to continue that run, "
-                                "or use another out_dir")
-        if stage == "finetune":
-            init_nets, transform, source = _load_init(init_from, model)
-            source = f"init weights {source}"
-        elif init_from is not None:
-            raise TrainingError("init_from: only stage 'finetune' starts from existing weights")
-        else:
-            transform, source = transform_spec(), "this code's transform spec"
+    def state(self, step: int) -> dict:
+        """Everything the next step depends on: the checkpoint's content."""
+        return {"stage": self.stage, "step": step, "settings": dataclasses.asdict(self.settings),
+                "precision": self.precision, "model": dataclasses.asdict(self.model), "transform": self.transform,
+                "store": {"path": str(self.store), "fingerprint": self.fingerprint, "patch_size": self.patch_size},
+                "init_from": str(self.init_from) if self.init_from is not None else None,
+                "branches": {b: t.state_dict() for b, t in self.trainers.items()},
+                "best": self.best.state_dict(), "rng": _rng_state()}
 
+
+def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, dict, str]:
+    """(checkpoint, init networks, transform spec, where the spec came from) for a resumed, fine-tuned
+    or fresh run; refuses a fresh run over an existing checkpoint."""
+    if resume:
+        checkpoint = load_checkpoint(run.checkpoint_path)
+        return checkpoint, None, checkpoint["transform"], f"checkpoint {run.checkpoint_path}"
+    if run.checkpoint_path.exists():
+        raise TrainingError(f"{run.checkpoint_path} exists: pass resume=True to continue that run, "
+                            "or use another out_dir")
+    if run.stage == "finetune":
+        init_nets, transform, source = _load_init(run.init_from, run.model)
+        return None, init_nets, transform, f"init weights {source}"
+    if run.init_from is not None:
+        raise TrainingError("init_from: only stage 'finetune' starts from existing weights")
+    return None, None, transform_spec(), "this code's transform spec"
+
+
+def _open_train(run: _Run, transform: dict, source: str) -> dict[str, PatchReader]:
+    """The train readers of the branches that have patches."""
+    store, settings = run.store, run.settings
     readers: dict[str, PatchReader] = {}
-    skipped: list[str] = []
     for branch in settings.branches:
         reader = _open_reader(store, "train", transform, branch, source)
         if len(reader) == 0 and branch == "specular":
-            skipped.append(branch)
-            say(f"{store}: no specular patches in the train split; the specular branch is not trained")
+            run.skipped.append(branch)
+            run.say(f"{store}: no specular patches in the train split; the specular branch is not trained")
             continue
         if len(reader) == 0:
             raise PatchStoreError(f"{store}: the train split has no {branch} patches")
         readers[branch] = reader
     if not readers:
         raise PatchStoreError(f"{store}: nothing to train for branches {list(settings.branches)}")
-    if resume:
-        _check_resumable(checkpoint, checkpoint_path, settings, model, stage, fingerprint)
-    patch_size = int(next(iter(readers.values())).attrs["patch_size"])
+    return readers
 
+
+def _load_val(run: _Run, readers: dict[str, PatchReader], transform: dict, source: str) -> dict[str, dict]:
+    """The fixed val rows of every trained branch that has val patches (none when val_every = 0)."""
+    store, settings = run.store, run.settings
     val: dict[str, dict] = {}
     if settings.val_every:
         for branch in readers:
             val_reader = _open_reader(store, "val", transform, branch, source)
             if len(val_reader) == 0 and branch == "specular":
-                say(f"{store}: no specular patches in the val split; specular is not validated")
+                run.say(f"{store}: no specular patches in the val split; specular is not validated")
                 continue
             if len(val_reader) == 0:
                 raise PatchStoreError(f"{store}: the val split has no {branch} patches (needed as val_every > 0)")
             val[branch] = load_rows(val_reader, settings.val_patches)
+    return val
 
-    _seed_everything(settings.seed)
-    trainers = {b: BranchTrainer(b, model, settings, patch_size, device) for b in readers}
-    precision = precision_name(next(iter(trainers.values())).dtype)
-    start = 0
+
+def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
+    """Load the checkpoint's full state (returns its step) or the init networks (returns 0)."""
     if checkpoint is not None:
-        for b, trainer in trainers.items():
+        for b, trainer in run.trainers.items():
             if b not in checkpoint["branches"]:
-                raise TrainingError(f"{checkpoint_path}: has no {b} branch but the store and settings train it")
-            trainer.load_state_dict(checkpoint["branches"][b], str(checkpoint_path))
+                raise TrainingError(f"{run.checkpoint_path}: has no {b} branch but the store and settings train it")
+            trainer.load_state_dict(checkpoint["branches"][b], str(run.checkpoint_path))
         _set_rng_state(checkpoint["rng"])
+        run.best.load_state_dict(checkpoint.get("best", {}))
         start = int(checkpoint["step"])
-        say(f"resuming {stage} from {checkpoint_path} at step {start}")
-        _say_precision_change(checkpoint, precision, say)
-    elif init_nets is not None:
-        for b, trainer in trainers.items():
+        run.say(f"resuming {run.stage} from {run.checkpoint_path} at step {start}")
+        _say_precision_change(checkpoint, run.precision, run.say)
+        return start
+    if init_nets is not None:
+        for b, trainer in run.trainers.items():
             if b not in init_nets:
-                raise TrainingError(f"{init_from}: has no {b} branch to fine-tune")
-            trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(init_from))
-    best = BestNetworks()
-    if checkpoint is not None:
-        best.load_state_dict(checkpoint.get("best", {}))
+                raise TrainingError(f"{run.init_from}: has no {b} branch to fine-tune")
+            trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(run.init_from))
+    return 0
 
-    def state(step: int) -> dict:
-        return {"stage": stage, "step": step, "settings": dataclasses.asdict(settings), "precision": precision,
-                "model": dataclasses.asdict(model), "transform": transform,
-                "store": {"path": str(store), "fingerprint": fingerprint, "patch_size": patch_size},
-                "init_from": str(init_from) if init_from is not None else None,
-                "branches": {b: t.state_dict() for b, t in trainers.items()}, "best": best.state_dict(),
-                "rng": _rng_state()}
 
-    pin = device.type == "cuda"
+def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
+    """Validate every branch, log it and offer its networks to the selection of the shipped weights."""
+    for b, rows in val.items():
+        trainer = run.trainers[b]
+        run.validation[b] = validate(trainer.generator, rows, b, run.settings.batch_size, run.device, trainer.dtype)
+        run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
+        run.best.offer(b, step, run.validation[b][SELECTION_METRIC], trainer.generator, trainer.critic)
+
+
+def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], start: int, resume: bool) -> None:
+    """Steps start..settings.steps: every branch once per step, logging, validation and checkpoints."""
+    settings = run.settings
+    pin = run.device.type == "cuda"
+    shard = (run.ranks.rank, run.ranks.world)
     streams = {b: iter(train_loader(readers[b], settings.batch_size, branch_seed(settings.seed, b),
-                                    trainers[b].batches, settings.num_workers, pin)) for b in trainers}
-    metrics = MetricsLog(out_dir, resume_step=start if resume else None)
-    averages, last_losses, validation = _Averages(), {}, {}
-
-    def validate_all(step: int) -> None:
-        for b, rows in val.items():
-            validation[b] = validate(trainers[b].generator, rows, b, settings.batch_size, device, trainers[b].dtype)
-            metrics.log(step, {f"{b}/val_{k}": v for k, v in validation[b].items()})
-            best.offer(b, step, validation[b][SELECTION_METRIC], trainers[b].generator, trainers[b].critic)
-
+                                    t.batches, settings.num_workers, pin, shard)) for b, t in run.trainers.items()}
+    if run.ranks.lead:
+        run.metrics = MetricsLog(run.out_dir, resume_step=start if resume else None)
+    else:
+        val = {}  # rank 0 validates (the others wait for it in the next step's all-reduce)
+    window = _Window(run, start)
     last_saved = start if resume else None
-    # A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
-    # so there the logged averages go out as one plain line every log_every steps instead.
-    live = progress and sys.stderr.isatty()
-    bar = tqdm(total=settings.steps, initial=start, disable=not live, desc=stage, dynamic_ncols=True)
-    window_start, window_patches = time.perf_counter(), 0
     try:
         if start == 0 and settings.val_every:
-            validate_all(0)  # the starting weights: what the run must beat to ship anything else
+            _validate_all(run, val, 0)  # the starting weights: what the run must beat to ship anything else
         for step in range(start, settings.steps):
-            for b, trainer in trainers.items():
+            for b, trainer in run.trainers.items():
                 batches = [next(streams[b]) for _ in range(trainer.batches_per_step(step))]
                 ok, losses = trainer.step(step, batches)
-                window_patches += len(batches) * settings.batch_size
+                window.patches += len(batches) * settings.batch_size
                 if ok:
-                    averages.add(b, losses)
-                    last_losses[b] = losses
-                    continue
-                say(f"step {step}: {b} skipped, non-finite batch, loss or gradient "
-                    f"({trainer.bad_consecutive} in a row, {trainer.bad_total} in all)")
-                if trainer.bad_consecutive >= settings.max_bad_steps:
-                    kept = f"step {last_saved}" if last_saved is not None else "none written"
-                    raise TrainingDiverged(
-                        f"{b}: {trainer.bad_consecutive} consecutive steps with non-finite batches, losses or "
-                        f"gradients (steps {step - trainer.bad_consecutive + 1}..{step}); stopped. Last good "
-                        f"checkpoint: {checkpoint_path} ({kept})")
+                    window.averages.add(b, losses)
+                    run.last_losses[b] = losses
+                else:
+                    _bad_step(run, b, trainer, step, last_saved)
             done = step + 1
-            bar.update(1)
-            if done % settings.log_every == 0 or done == settings.steps:
-                elapsed = time.perf_counter() - window_start
-                values = averages.pop()
-                values["patches_per_s"] = window_patches / max(elapsed, 1e-9)
-                for b, trainer in trainers.items():
-                    values.update({f"{b}/{k}": v for k, v in trainer.learning_rates().items()})
-                    values[f"{b}/bad_steps"] = trainer.bad_total
-                values["phase"] = ("l1", "critic", "adversarial").index(settings.phase(step))
-                metrics.log(done, values)
-                bar.set_postfix(_postfix(values), refresh=False)
-                if progress and not live:
-                    line = " ".join(f"{k}={v}" for k, v in _postfix(values).items())
-                    print(f"{stage} step {done}/{settings.steps}: {line}", file=sys.stderr, flush=True)
-                window_start, window_patches = time.perf_counter(), 0
+            window.step_done(done)
             if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
-                validate_all(done)
-            streak = any(t.bad_consecutive for t in trainers.values())
+                _validate_all(run, val, done)
+            streak = any(t.bad_consecutive for t in run.trainers.values())
             if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
-                save_checkpoint(checkpoint_path, state(done))
+                if run.ranks.lead:
+                    save_checkpoint(run.checkpoint_path, run.state(done))
                 last_saved = done
+    except RankFailed as exc:
+        kept = f"step {last_saved}" if last_saved is not None else "none written yet"
+        raise RankFailed(f"{exc}; last checkpoint: {run.checkpoint_path} ({kept})") from None
     finally:
-        bar.close()
-        metrics.close()
+        window.close()
+        if run.metrics is not None:
+            run.metrics.close()
         del streams
 
-    last_step = max(start, settings.steps)
-    selected, selection_notes = best.summary(last_step, {b: v[SELECTION_METRIC] for b, v in validation.items()})
-    notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
+
+def _bad_step(run: _Run, branch: str, trainer: BranchTrainer, step: int, last_saved: int | None) -> None:
+    """Say a skipped step; stop with TrainingDiverged after max_bad_steps in a row."""
+    run.say(f"step {step}: {branch} skipped, non-finite batch, loss or gradient "
+            f"({trainer.bad_consecutive} in a row, {trainer.bad_total} in all)")
+    if trainer.bad_consecutive >= run.settings.max_bad_steps:
+        kept = f"step {last_saved}" if last_saved is not None else "none written"
+        raise TrainingDiverged(
+            f"{branch}: {trainer.bad_consecutive} consecutive steps with non-finite batches, losses or "
+            f"gradients (steps {step - trainer.bad_consecutive + 1}..{step}); stopped. Last good "
+            f"checkpoint: {run.checkpoint_path} ({kept})")
+
+
+class _Window:
+    """Progress and the logged averages over the steps since the last log line.
+
+    A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
+    so there the logged averages go out as one plain line every log_every steps instead."""
+
+    def __init__(self, run: _Run, start: int):
+        self.run = run
+        self.live = run.progress and sys.stderr.isatty()
+        self.bar = tqdm(total=run.settings.steps, initial=start, disable=not self.live, desc=run.stage,
+                        dynamic_ncols=True)
+        self.averages = _Averages()
+        self.start, self.patches = time.perf_counter(), 0
+
+    def step_done(self, done: int) -> None:
+        run, settings = self.run, self.run.settings
+        self.bar.update(1)
+        if not run.ranks.lead or (done % settings.log_every and done != settings.steps):
+            return
+        values = self.averages.pop()
+        values["patches_per_s"] = self.patches / max(time.perf_counter() - self.start, 1e-9)
+        for b, trainer in run.trainers.items():
+            values.update({f"{b}/{k}": v for k, v in trainer.learning_rates().items()})
+            values[f"{b}/bad_steps"] = trainer.bad_total
+        values["phase"] = ("l1", "critic", "adversarial").index(settings.phase(done - 1))
+        run.metrics.log(done, values)
+        self.bar.set_postfix(_postfix(values), refresh=False)
+        if run.progress and not self.live:
+            line = " ".join(f"{k}={v}" for k, v in _postfix(values).items())
+            print(f"{run.stage} step {done}/{settings.steps}: {line}", file=sys.stderr, flush=True)
+        self.start, self.patches = time.perf_counter(), 0
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _finish(run: _Run, start: int) -> TrainResult:
+    """Write the shipped weights (each branch's best validated networks) and say which they are."""
+    last_step = max(start, run.settings.steps)
+    selected, selection_notes = run.best.summary(last_step, {b: v[SELECTION_METRIC]
+                                                             for b, v in run.validation.items()})
+    run.notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
     for note in selection_notes:
         log.info(note)
-    export_weights(weights_path, {b: best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
-                   {"model": dataclasses.asdict(model), "transform": transform, "patch_size": patch_size,
-                    "stage": stage, "step": last_step, "selected": selected, "store_fingerprint": fingerprint,
-                    "precision": precision})
-    return TrainResult(out_dir=out_dir, checkpoint=checkpoint_path, weights=weights_path,
-                       step=last_step, branches=list(trainers), skipped_branches=skipped,
-                       bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=last_losses,
-                       validation=validation, notes=notes, selected=selected)
+    trainers = run.trainers
+    if run.ranks.lead:
+        export_weights(run.weights_path, {b: run.best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
+                       {"model": dataclasses.asdict(run.model), "transform": run.transform,
+                        "patch_size": run.patch_size, "stage": run.stage, "step": last_step, "selected": selected,
+                        "store_fingerprint": run.fingerprint, "precision": run.precision})
+    return TrainResult(out_dir=run.out_dir, checkpoint=run.checkpoint_path, weights=run.weights_path,
+                       step=last_step, branches=list(trainers), skipped_branches=run.skipped,
+                       bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=run.last_losses,
+                       validation=run.validation, notes=run.notes, selected=selected, rank=run.ranks.rank)
 
 
 def _postfix(values: dict[str, float]) -> dict[str, str]:

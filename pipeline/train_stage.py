@@ -8,7 +8,8 @@ from pathlib import Path
 
 import admc
 from admc.model.settings import ModelSettings
-from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
+from admc.model import distributed
+from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_world, resolve_device, train
 from admc.pipeline import render, tile
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.stages import StageError, build_dataset
@@ -33,13 +34,35 @@ def train_dir(cfg: Config, stage: str) -> Path:
 
 
 def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart: bool = False,
-                 progress: bool = True) -> TrainResult:
+                 progress: bool = True, nproc: int = 1) -> TrainResult:
     """Pretrain on the config's corpus, or fine-tune on it from `init_from` (default: the shipped weights).
 
     Like every stage, training is resumable: a run whose checkpoint exists continues from it (and does
     nothing once complete); a changed architecture or store is refused by the trainer. `restart`
-    discards the existing run first.
+    discards the existing run first. `nproc` > 1 trains in that many processes on this machine; under
+    torchrun each process is one rank already, and rank 0 alone prepares the run and the store.
     """
+    device = resolve_device(cfg.train.device)
+    ranks = distributed.join_from_env(device)
+    if nproc > 1 and ranks.world > 1:
+        raise StageError(f"--nproc {nproc}: this process is already rank {ranks.rank} of {ranks.world} "
+                         "(torchrun); leave --nproc out")
+    check_world(cfg.train, cfg.model, max(nproc, ranks.world))
+    prepared = _prepare(cfg, stage, init_from, restart, progress) if ranks.lead else None
+    store, init_from, resume, notes = distributed.share(prepared)
+    kwargs = dict(store_path=store, out_dir=train_dir(cfg, stage), settings=cfg.train, model=cfg.model,
+                  stage=stage, init_from=None if resume else init_from, resume=resume, progress=progress)
+    try:
+        result = distributed.launch(nproc, device, train, kwargs) if nproc > 1 else train(**kwargs)
+    except distributed.RankFailed as exc:
+        raise StageError(f"{exc}\n{interrupted_note(cfg, stage)}") from None
+    result.notes[:0] = notes
+    return result
+
+
+def _prepare(cfg: Config, stage: str, init_from: Path | None, restart: bool, progress: bool
+             ) -> tuple[Path, Path | None, bool, list[str]]:
+    """(patch store, init weights, resume?, notes): restart, find the weights, build the store."""
     out_dir = train_dir(cfg, stage)
     if restart and out_dir.exists():
         shutil.rmtree(out_dir)
@@ -56,10 +79,7 @@ def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart
     if init_from is not None and not resume:
         read_networks(init_from)  # a damaged or foreign file is refused before the dataset is built
     dataset = build_dataset(cfg, progress=progress)  # cached: nothing to do once the store is built
-    result = train(dataset.store, out_dir, cfg.train, cfg.model, stage=stage,
-                   init_from=None if resume else init_from, resume=resume, progress=progress)
-    result.notes[:0] = dataset.notes
-    return result
+    return dataset.store, init_from, resume, dataset.notes
 
 
 def check_splits(cfg: Config) -> None:

@@ -102,6 +102,20 @@ def test_batch_stream_is_seeded_covers_each_epoch_and_resumes_mid_stream():
     assert codes <= set(range(N_AUGMENTATIONS)) and len(codes) > 4
 
 
+
+def test_rank_shards_together_are_the_single_stream_and_resume_alike():
+    def take(stream, n):
+        it = iter(stream)
+        return [next(it) for _ in range(n)]
+
+    full = take(BatchStream(10, 4, seed=5), 8)
+    shards = [take(BatchStream(10, 4, seed=5, shard=(rank, 2)), 8) for rank in range(2)]
+    assert [a + b for a, b in zip(*shards)] == full  # each rank its half of every global batch, in order
+    for rank in range(2):
+        assert take(BatchStream(10, 4, seed=5, start_batch=5, shard=(rank, 2)), 3) == shards[rank][5:]
+    with pytest.raises(ValueError, match="no shard"):
+        BatchStream(10, 3, seed=5, shard=(0, 2))
+
 def test_dataset_items_are_augmented_store_rows(store):
     reader = PatchReader(store, "train")
     dataset = PatchDataset(reader)
