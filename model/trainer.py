@@ -65,7 +65,7 @@ class TrainResult:
     bad_steps: dict[str, int]
     last_losses: dict[str, dict[str, float]]
     validation: dict[str, dict[str, float]]
-    notes: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # what the run has to say and has not shown yet
     selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
     rank: int = 0  # the process that returns it; only rank 0's speaks for the run
 
@@ -252,10 +252,12 @@ class _Run:
         self.fingerprint = store_fingerprint(self.store) if (self.store / "zarr.json").is_file() else None
 
     def say(self, message: str) -> None:
-        self.notes.append(message)
+        """Show a note now under the progress bar, or (without one) keep it for the caller to report."""
         log.info(message)
         if self.progress:
             tqdm.write(message)
+        else:
+            self.notes.append(message)
 
     def state(self, step: int) -> dict:
         """Everything the next step depends on: the checkpoint's content."""

@@ -64,6 +64,7 @@ def test_rerun_is_a_no_op_and_more_steps_resume(pretrained):
     out = cli("train", "--stage", "pretrain", *flags(settings(workdir, steps=6)))
     assert out.returncode == 0, out.stderr
     assert "resuming pretrain" in out.stdout
+    assert (out.stdout + out.stderr).count("resuming pretrain") == 1, "a note is said once, not again at the end"
     assert load_checkpoint(checkpoint)["step"] == 6 and checkpoint.stat().st_mtime_ns != before
 
 
