@@ -71,7 +71,7 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
 
 
 def _print_dataset(result, summary_only: bool = False) -> None:
-    from admc.pipeline.dataset_report import contact_sheet
+    from admc.pipeline.dataset.report import contact_sheet
     from admc.stores.patches import store_summary
 
     for note in result.notes:
@@ -176,7 +176,7 @@ DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 
 def _denoiser(cfg, weights: Optional[Path], device: str, tile: int, name: str = "admc"):
-    from admc.model.denoiser import load_denoiser
+    from admc.model.inference import load_denoiser
     from admc.model.trainer import resolve_device
     from admc.pipeline.train_stage import default_weights
 
@@ -215,7 +215,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                           "same).")] = 512,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
-    from admc.pipeline.denoise_io import DenoiseInputError, check_output_path, load_denoise_input
+    from admc.pipeline.user_files import DenoiseInputError, check_output_path, load_denoise_input
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -240,7 +240,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 
 def _denoise_one(model, path: Path, source, target: Path) -> None:
     """Denoise one checked input into `target` and say what was done to it."""
-    from admc.pipeline.denoise_io import write_denoised
+    from admc.pipeline.user_files import write_denoised
 
     result = model(source.layers)
     write_denoised(target, result, source=source)

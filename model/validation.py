@@ -1,6 +1,6 @@
 """Validation of one branch on fixed val patches: PSNR and relMSE in linear radiance.
 
-The metrics follow the evaluation's definitions (pipeline/metrics.py, not imported: model never
+The metrics follow the evaluation's definitions (pipeline/evaluation/metrics.py, not imported: model never
 imports pipeline): relMSE = mean((x - y)^2 / (y^2 + 0.01)) on linear HDR values; PSNR on 8-bit
 images round(255 * clip(x^(1/2.2), 0, 1)), capped at 100 dB. Both are computed per patch and
 averaged, for the denoised output and, as the baseline, the noisy input.

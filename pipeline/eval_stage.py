@@ -7,11 +7,13 @@ from pathlib import Path
 import numpy as np
 
 from admc.errors import AdmcError
-from admc.pipeline import evaluate, render, report_html, tile
+from admc.pipeline.dataset import tile
+from admc.pipeline.evaluation import evaluate, html
+from admc.pipeline.render import stage as render
 from admc.pipeline.config import Config
-from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
-from admc.pipeline.metrics import METRICS
-from admc.pipeline.scenes import SceneSpec
+from admc.pipeline.evaluation.baselines import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
+from admc.pipeline.evaluation.metrics import METRICS
+from admc.pipeline.render.scenes import SceneSpec
 from admc.pipeline.stages import render_corpus
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
@@ -34,14 +36,14 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
             if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
 
 
-def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]:
+def _report_images(result: evaluate.EvalResult) -> list[html.ReportImage]:
     metrics = {(r.scene_id, r.spp, r.method): {"1-SSIM": r.one_minus_ssim, "PSNR": r.psnr, "relMSE": r.relmse}
                for r in result.records}
     images = []
     for scene in result.scenes[:REPORT_SCENES]:
         reference = np.load(scene.reference)
         for spp, outputs in sorted(scene.outputs.items()):
-            images.append(report_html.ReportImage(
+            images.append(html.ReportImage(
                 scene_id=scene.scene_id, spp=spp, reference=reference,
                 outputs={name: np.load(path) for name, path in outputs.items()},
                 metrics={name: metrics[(scene.scene_id, spp, name)] for name in outputs}))
@@ -76,7 +78,7 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     result = evaluate.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
                                warmup=cfg.eval.warmup, not_run=not_run)
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
-    report = report_html.write_report(
+    report = html.write_report(
         out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
         # the page has its own "Table 1" heading and prints the metric definitions in its header,
         # so the Markdown file's title line and its copy of the definitions are left out

@@ -8,10 +8,12 @@ from admc.errors import AdmcError
 import admc
 from admc.model import transforms
 from admc.model.critic import DOWNSAMPLING
-from admc.pipeline import render, runner, slurm, tile
+from admc.pipeline import runner, slurm
+from admc.pipeline.dataset import tile
+from admc.pipeline.render import stage as render
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
-from admc.pipeline.scenes import SceneError, SceneSpec
+from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.stores import patches
 from admc.stores.atomic import read_json
 

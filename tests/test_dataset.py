@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from admc.model import transforms as tf
-from admc.pipeline import tile
+from admc.pipeline.dataset import tile
 from admc.pipeline.config import load_config
 from admc.pipeline.stages import build_dataset
 from admc.stores import exr, patches
@@ -24,7 +24,7 @@ def tiny(workdir, n_scenes):
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    from admc.pipeline.variants import use_variant
+    from admc.pipeline.render.variants import use_variant
     use_variant("auto")
     workdir = tmp_path_factory.mktemp("dataset")
     return workdir, build_dataset(tiny(workdir, 3), progress=False)

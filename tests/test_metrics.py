@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from admc.pipeline import metrics
+from admc.pipeline.evaluation import metrics
 
 
 def _pair(shape, seed=0, noise=0.2):

@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.denoiser import (
+from admc.model.inference import (
     LOG_MAX,
     MISSING_DEPTH,
     FullImageDenoiser,

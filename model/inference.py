@@ -139,7 +139,7 @@ class FullImageDenoiser:
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables).
-    Implements pipeline.denoisers.Denoiser (name, device, denoise, synchronize).
+    Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from admc.pipeline import integrator, scenes
+from admc.pipeline.render import integrator, scenes
 from admc.pipeline.cache import Task, code_version
 from admc.pipeline.config import Config
-from admc.pipeline.scenes import SceneSpec
-from admc.pipeline.variants import use_variant
+from admc.pipeline.render.scenes import SceneSpec
+from admc.pipeline.render.variants import use_variant
 from admc.stores import exr
 
 EXR_NAME = "render.exr"

@@ -28,7 +28,7 @@ import numpy as np
 from matplotlib import colormaps
 from PIL import Image
 
-from admc.pipeline.metrics import GAMMA, RELMSE_EPS as HEAT_EPS  # one definition: heat maps show relMSE per pixel
+from admc.pipeline.evaluation.metrics import GAMMA, RELMSE_EPS as HEAT_EPS  # one definition: heat maps show relMSE per pixel
 
 MAX_EMBED = (1280, 720)          # (width, height) of the largest image embedded at full resolution
 THUMB = (240, 240)               # (width, height) box the overview thumbnails fit into

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from admc.pipeline.report_html import MAX_EMBED, ReportImage, embed_size, markdown_to_html, write_report
+from admc.pipeline.evaluation.html import MAX_EMBED, ReportImage, embed_size, markdown_to_html, write_report
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)

@@ -24,8 +24,8 @@ from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, NullForma
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from admc.errors import AdmcError
-from admc.pipeline.denoisers import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
-from admc.pipeline.metrics import METRICS, NONFINITE_RULE, count_nonfinite, reference_floor, score
+from admc.pipeline.evaluation.baselines import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
+from admc.pipeline.evaluation.metrics import METRICS, NONFINITE_RULE, count_nonfinite, reference_floor, score
 from admc.stores.atomic import publishing, write_json
 from admc.stores.exr import exr_layers, read_exr
 
