@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from admc.common.diff import differing_keys
+
 from .generator import Generator, build_generator
 from .precision import autocast_for, memory_format_for, resolve_precision
 from .transforms import (
@@ -282,7 +284,7 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
 
     nets, model, transform = read_networks(path)
     if transform != transform_spec():
-        changed = sorted(k for k in set(transform) | set(transform_spec()) if transform.get(k) != transform_spec().get(k))
+        changed = differing_keys(transform, transform_spec())
         raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")

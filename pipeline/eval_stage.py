@@ -12,7 +12,7 @@ from admc.pipeline.evaluation import evaluate, html
 from admc.pipeline.render import stage as render
 from admc.pipeline.config import Config
 from admc.pipeline.evaluation.baselines import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
-from admc.pipeline.evaluation.metrics import METRICS
+from admc.common.metrics import METRICS
 from admc.pipeline.render.scenes import SceneSpec
 from admc.pipeline.stages import render_corpus
 

@@ -47,6 +47,8 @@ import zarr
 from zarr.codecs import BloscCodec, BloscShuffle
 from zarr.storage import LocalStore
 
+from admc.common.diff import differing_keys
+from admc.common.layout import BRANCHES, N_FEATURES
 from admc.errors import AdmcError
 from admc.stores.atomic import fsync_path
 
@@ -55,9 +57,8 @@ FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")
 STAGING = "_staging"
 SHARD_PATCHES = 256
-BRANCHES = ("diffuse", "specular")
 
-ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": 7}
+ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": N_FEATURES}
 CROP_IMAGES = {"ref_diffuse": 3, "ref_specular": 3}
 SPECULAR_ARRAYS = ("noisy_specular", "ref_specular")
 REQUIRED_ROOT_ATTRS = ("transform", "patch_size")
@@ -108,20 +109,6 @@ def _jsonable(obj: Any, what: str) -> Any:
         raise PatchStoreError(f"{what}: not JSON-serializable ({exc})") from None
 
 
-def _differences(have: Any, want: Any, prefix: str = "") -> list[str]:
-    """Dotted keys at which two JSON values differ."""
-    if isinstance(have, dict) and isinstance(want, dict):
-        out = []
-        for key in sorted(set(have) | set(want), key=str):
-            name = f"{prefix}.{key}" if prefix else str(key)
-            if key not in have or key not in want:
-                out.append(name)
-            else:
-                out.extend(_differences(have[key], want[key], name))
-        return out
-    return [] if have == want else [prefix or "<value>"]
-
-
 def _check_name(value: str, what: str) -> None:
     if not isinstance(value, str) or not _NAME.fullmatch(value):
         raise PatchStoreError(f"{what} {value!r}: use letters, digits, '.', '_', '-', starting alphanumeric")
@@ -164,7 +151,7 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
                      f"create_store {path}: attrs")
     if (path / "zarr.json").is_file():
         existing = dict(_open_root(path).attrs)
-        diff = _differences(existing, full)
+        diff = differing_keys(existing, full)
         if diff and any(list_scenes(path, split) for split in SPLITS):
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
@@ -372,7 +359,7 @@ class PatchReader:
         self.attrs = dict(root.attrs)
         if expect_transform is not None:
             want = _jsonable(expect_transform, "expect_transform")
-            diff = _differences(self.attrs.get("transform"), want)
+            diff = differing_keys(self.attrs.get("transform"), want)
             if diff:
                 have = {"transform": self.attrs.get("transform")}
                 raise PatchStoreError(

@@ -20,7 +20,7 @@ from admc.model.generator import Generator
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
 from admc.pipeline.evaluation.evaluate import TestImage, evaluate
-from admc.pipeline.evaluation.metrics import one_minus_ssim
+from admc.common.metrics import one_minus_ssim
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import write_exr
 

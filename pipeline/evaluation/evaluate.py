@@ -25,7 +25,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from admc.errors import AdmcError
 from admc.pipeline.evaluation.baselines import Denoiser, NoisyInput, cpu_description, noisy_color, time_denoiser
-from admc.pipeline.evaluation.metrics import METRICS, NONFINITE_RULE, count_nonfinite, reference_floor, score
+from admc.common.metrics import METRICS, NONFINITE_RULE, count_nonfinite, reference_floor, score
 from admc.stores.atomic import publishing, write_json
 from admc.stores.exr import exr_layers, read_exr
 

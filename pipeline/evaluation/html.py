@@ -28,7 +28,7 @@ import numpy as np
 from matplotlib import colormaps
 from PIL import Image
 
-from admc.pipeline.evaluation.metrics import GAMMA, RELMSE_EPS as HEAT_EPS  # one definition: heat maps show relMSE per pixel
+from admc.common.metrics import GAMMA, RELMSE_EPS as HEAT_EPS, to_ldr  # one definition: heat maps show relMSE per pixel
 
 MAX_EMBED = (1280, 720)          # (width, height) of the largest image embedded at full resolution
 THUMB = (240, 240)               # (width, height) box the overview thumbnails fit into
@@ -144,7 +144,7 @@ def display_rgb(linear: np.ndarray) -> np.ndarray:
     clean = np.where(np.isfinite(linear), np.maximum(linear, 0.0), 0.0).astype(np.float32)
     size = embed_size(linear.shape)
     small = _resize(clean, size)
-    rgb = np.rint(np.clip(small, 0.0, 1.0) ** (1.0 / GAMMA) * 255).astype(np.uint8)
+    rgb = to_ldr(small)
     rgb[_resize(bad[..., None].astype(np.float32), size)[..., 0] > 0] = MAGENTA
     return rgb
 
