@@ -19,7 +19,8 @@ from admc.model.settings import ModelSettings
 from admc.model.generator import Generator
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
-from admc.pipeline.evaluation.evaluate import TestImage, evaluate
+from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.records import TestImage
 from admc.common.metrics import one_minus_ssim
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import write_exr
@@ -105,7 +106,7 @@ def test_eval_on_extreme_cases_gives_finite_metrics_and_complete_tables(model, t
 def test_real_one_spp_renders_through_eval(model, variant, tmp_path):
     """1 spp from the real integrator (the stiffest input a user can render), not a synthetic stand-in."""
     from admc.pipeline.config import load_config
-    from admc.pipeline.evaluation.evaluate import find_test_images
+    from admc.pipeline.evaluation.inputs import find_test_images
     from admc.pipeline.stages import render_corpus
 
     cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
