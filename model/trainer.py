@@ -24,10 +24,10 @@ from tqdm import tqdm
 
 from admc.errors import AdmcError, DeviceError, TrainingError
 from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
-from admc.stores.patches import PatchReader, PatchStoreError
+from admc.stores.patches import PatchReader, PatchStoreError, fingerprint as store_fingerprint
 
 from .branch import BranchTrainer
-from .data import branch_seed, load_rows, store_fingerprint, train_loader
+from .data import branch_seed, load_rows, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
 from .precision import precision_name

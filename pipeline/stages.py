@@ -180,6 +180,6 @@ def check_patch_fits(cfg: Config, specs: list[SceneSpec]) -> None:
 def existing_dataset(cfg: Config) -> StageResult:
     """The store as it is, without rendering or tiling anything."""
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
-    if not (store_path / "zarr.json").is_file():
+    if not patches.exists(store_path):
         raise StageError(f"no patch store at {store_path}: run `admc-pipe dataset` first")
     return StageResult([], [], [], Path(cfg.run.workdir) / "renders", store_path, 0, 0, [])

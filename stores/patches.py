@@ -6,24 +6,26 @@ Layout (LocalStore directory):
       _staging/                scenes being written (and replaced scenes being deleted); never read
       train/ val/ test/        one group per split
         <scene_id>/            one group per scene, written by one task; attrs: scene_id, scene_hash,
-                               has_specular, image_size, sanitization, n_rows, n_crops,
+                               has_specular, image_size, sanitization, n_rows, n_crops (= n_rows),
                                checksums (sha256 of each array's files, as written)
-          noisy_diffuse  (n, 3, P, P) f16   one row per (crop, spp)
+          noisy_diffuse  (n, 3, P, P) f16   one row per (image crop, spp)
           noisy_specular (n, 3, P, P) f16   only for scenes with specular
           features       (n, 7, P, P) f16   rendered at the row's spp, so per row
           spp            (n,)  int32
-          crop           (n,)  int32        row -> index of its reference crop
-          ref_diffuse    (m, 3, P, P) f16   one per crop: shared by all spp rows of that crop
-          ref_specular   (m, 3, P, P) f16   only with specular
-          origin         (m, 2) int32       crop's (y, x) in the image
+          crop           (n,)  int32        row -> its reference entry; the tile stage writes the identity
+          ref_diffuse    (n, 3, P, P) f16   one per row: demodulated by that row's own albedo
+          ref_specular   (n, 3, P, P) f16   only with specular
+          origin         (n, 2) int32       the row's (y, x) in the image
 
 Why this shape: a scene group is written whole by one task, so parallel writers never share a
 chunk, shard or metadata file (no locks), and adding a scene adds a group without rewriting
 anything. The scene list is therefore not kept in the root attributes (that would be a
 read-modify-write by every writer); it is the split group's directory listing. A scene is staged
 under `_staging/` and renamed into its split last, so a killed writer never leaves a half scene
-visible. References are stored once per crop and indexed by `crop`, which saves (k-1)/k of the
-reference bytes for k spp levels; the index arrays are tiny and read once per scene.
+visible. Each row has its own reference entry: the reference diffuse is divided by the row's own
+(noisy) albedo, the albedo inference has, so it cannot be shared between the spp levels of an image
+crop. The reader still goes through the `crop` index (tiny, read once per scene); the tile stage
+writes it as the identity, so n_crops equals n_rows.
 Image arrays have chunks of exactly one patch (a random read decodes one patch) grouped into
 shards of up to SHARD_PATCHES patches (few files per scene). Zarr checksums only a shard's index:
 flipped bytes inside a compressed chunk mostly decode to wrong values without any error, so each
@@ -66,8 +68,9 @@ REQUIRED_SCENE_ATTRS = ("scene_hash", "image_size", "sanitization")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 LAYOUT = {
-    "rows": "one row per (crop, spp): noisy_*, features, spp, crop",
-    "crops": "one per reference crop: ref_*, origin; row r's reference is ref_*[crop[r]]",
+    "rows": "one row per (image crop, spp): noisy_*, features, spp, crop",
+    "crops": "one reference entry per row (crop[r] == r as written): ref_*, origin; row r's reference is "
+             "ref_*[crop[r]]",
     "noisy_diffuse": "transform.diffuse of the noisy render", "noisy_specular": "transform.specular",
     "features": "transform.feature_channels", "ref_diffuse": "transform.diffuse of the reference",
     "ref_specular": "transform.specular of the reference", "origin": "(y, x) of the crop in the image",
@@ -120,7 +123,7 @@ def _check_split(split: str) -> None:
 
 
 def _open_root(path: Path) -> zarr.Group:
-    if not (Path(path) / "zarr.json").is_file():
+    if not exists(path):
         raise PatchStoreError(f"{path}: no patch store here (create_store first)")
     root = zarr.open_group(store=LocalStore(path, read_only=True), mode="r")
     if root.attrs.get("format") != FORMAT:
@@ -129,6 +132,24 @@ def _open_root(path: Path) -> zarr.Group:
         raise PatchStoreError(
             f"{path}: format_version {root.attrs.get('format_version')!r}, this code reads {FORMAT_VERSION}")
     return root
+
+
+def exists(path: str | os.PathLike) -> bool:
+    """Whether a patch store was created at `path` (its format is checked when it is opened)."""
+    return (Path(path) / "zarr.json").is_file()
+
+
+def fingerprint(path: str | os.PathLike) -> str:
+    """sha256 over the store's root attributes and every split's scene ids and scene hashes.
+
+    Cheap (metadata only): it changes when scenes are added, removed or re-rendered, not when
+    patch bytes are edited in place.
+    """
+    root = _open_root(Path(path))
+    scenes = {split: {scene: root[f"{split}/{scene}"].attrs.get("scene_hash") for scene in list_scenes(path, split)}
+              for split in SPLITS}
+    text = json.dumps({"attrs": dict(root.attrs), "scenes": scenes}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def create_store(path: str | os.PathLike, attrs: dict) -> None:
@@ -149,7 +170,7 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
         raise PatchStoreError(f"create_store {path}: attrs may not set reserved keys {sorted(reserved)}")
     full = _jsonable({**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "layout": LAYOUT},
                      f"create_store {path}: attrs")
-    if (path / "zarr.json").is_file():
+    if exists(path):
         existing = dict(_open_root(path).attrs)
         diff = differing_keys(existing, full)
         if diff and any(list_scenes(path, split) for split in SPLITS):
