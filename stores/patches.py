@@ -25,7 +25,8 @@ under `_staging/` and renamed into its split last, so a killed writer never leav
 visible. Each row has its own reference entry: the reference diffuse is divided by the row's own
 (noisy) albedo, the albedo inference has, so it cannot be shared between the spp levels of an image
 crop. The reader still goes through the `crop` index (tiny, read once per scene); the tile stage
-writes it as the identity, so n_crops equals n_rows.
+writes it as the identity, so n_crops equals n_rows (format_version 2; version 1 promised one
+shared reference per image crop and is refused).
 Image arrays have chunks of exactly one patch (a random read decodes one patch) grouped into
 shards of up to SHARD_PATCHES patches (few files per scene). Zarr checksums only a shard's index:
 flipped bytes inside a compressed chunk mostly decode to wrong values without any error, so each
@@ -55,7 +56,7 @@ from admc.errors import AdmcError
 from admc.stores.atomic import fsync_path
 
 FORMAT = "admc-patches"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 SPLITS = ("train", "val", "test")
 STAGING = "_staging"
 SHARD_PATCHES = 256
@@ -128,9 +129,13 @@ def _open_root(path: Path) -> zarr.Group:
     root = zarr.open_group(store=LocalStore(path, read_only=True), mode="r")
     if root.attrs.get("format") != FORMAT:
         raise PatchStoreError(f"{path}: not an {FORMAT} store (format={root.attrs.get('format')!r})")
-    if root.attrs.get("format_version") != FORMAT_VERSION:
+    version = root.attrs.get("format_version")
+    if version != FORMAT_VERSION:
+        older = isinstance(version, int) and version < FORMAT_VERSION
         raise PatchStoreError(
-            f"{path}: format_version {root.attrs.get('format_version')!r}, this code reads {FORMAT_VERSION}")
+            f"{path}: format_version {version!r}, this code reads {FORMAT_VERSION}"
+            + ("; written by an older admc: move it away (or delete it) and run `admc-pipe dataset` to tile "
+               "it again from the cached renders" if older else ""))
     return root
 
 
