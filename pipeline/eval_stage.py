@@ -15,7 +15,8 @@ from admc.errors import AdmcError
 from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.evaluation import evaluate, html
-from admc.pipeline.evaluation.baselines import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
+from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser,
+                                                optix_unavailable_reason)
 from admc.pipeline.evaluation.inputs import find_test_images
 from admc.pipeline.evaluation.records import EvalResult
 from admc.pipeline.evaluation.table1 import build_table1

@@ -4,15 +4,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from admc.errors import AdmcError
 import admc
+from admc.errors import AdmcError
 from admc.model import transforms
 from admc.model.critic import DOWNSAMPLING
 from admc.pipeline import runner, slurm
-from admc.pipeline.dataset import tile
-from admc.pipeline.render import stage as render
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
+from admc.pipeline.dataset import tile
+from admc.pipeline.render import stage as render
 from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.stores import patches
 from admc.stores.atomic import read_json

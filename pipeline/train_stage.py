@@ -7,12 +7,12 @@ from collections import Counter
 from pathlib import Path
 
 import admc
-from admc.model.settings import ModelSettings
 from admc.model.inference import FullImageDenoiser, load_denoiser
+from admc.model.settings import ModelSettings
 from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, resolve_device, train
+from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import stage as render
-from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.stages import StageError, build_dataset
 from admc.stores.checkpoints import load_checkpoint, read_networks
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from admc.model import transforms as tf
-from admc.pipeline.dataset import tile
 from admc.pipeline.config import load_config
+from admc.pipeline.dataset import tile
 from admc.pipeline.stages import build_dataset
 from admc.stores import exr, patches
 

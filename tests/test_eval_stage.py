@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from admc.pipeline.config import load_config
-from admc.pipeline.evaluation.baselines import optix_unavailable_reason
 from admc.pipeline.eval_stage import EvalStageError, eval_scenes, run_eval
+from admc.pipeline.evaluation.baselines import optix_unavailable_reason
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
 

@@ -10,14 +10,14 @@ import pyoidn
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from admc.common.metrics import METRICS, score, to_ldr
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
-                                     optix_unavailable_reason, time_denoiser)
-from admc.pipeline.render.stage import view_space_normals
+                                                optix_unavailable_reason, time_denoiser)
 from admc.pipeline.evaluation.evaluate import evaluate
 from admc.pipeline.evaluation.inputs import find_test_images
 from admc.pipeline.evaluation.records import EvalError, best_percent
-from admc.common.metrics import METRICS, score, to_ldr
+from admc.pipeline.render.stage import view_space_normals
 from admc.pipeline.stages import render_corpus
 from admc.stores.exr import read_exr, write_exr
 

@@ -14,14 +14,14 @@ import pytest
 import torch
 from scipy.ndimage import maximum_filter
 
+from admc.common.metrics import one_minus_ssim
+from admc.model.generator import Generator
 from admc.model.inference import FullImageDenoiser, load_denoiser, receptive_radius
 from admc.model.settings import ModelSettings
-from admc.model.generator import Generator
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
 from admc.pipeline.evaluation.evaluate import evaluate
 from admc.pipeline.evaluation.records import TestImage
-from admc.common.metrics import one_minus_ssim
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import write_exr
 

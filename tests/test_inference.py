@@ -4,6 +4,7 @@ import pytest
 import torch
 from torch import nn
 
+from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
 from admc.model.inference import (
     LOG_MAX,
     MISSING_DEPTH,
@@ -12,7 +13,6 @@ from admc.model.inference import (
     receptive_radius,
     run_tiled,
 )
-from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

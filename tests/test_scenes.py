@@ -21,8 +21,8 @@ from admc.pipeline.render.scenes import (
     scene_hash,
     xml_corpus,
 )
-from admc.pipeline.render.scenes.staging import family_rng
 from admc.pipeline.render.scenes.meshes import bumpy_sphere, heightfield, lathe
+from admc.pipeline.render.scenes.staging import family_rng
 
 RES = (32, 32)
 
