@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 
 from admc.pipeline.config import load_config
+from admc.pipeline.render.variants import use_variant
 from admc.pipeline.stages import render_corpus
-from admc.pipeline.variants import use_variant
 from admc.stores.patches import store_summary
 
 SMALL = ["render.resolution=[64, 64]", "render.spp=[4, 16]", "render.reference_spp=64", "corpus.n_scenes=8",

@@ -24,12 +24,12 @@ import statistics
 import numpy as np
 import torch
 
-from admc.model.denoiser import FullImageDenoiser, receptive_radius
 from admc.model.generator import Generator
+from admc.model.inference import FullImageDenoiser, receptive_radius
 from admc.model.precision import PRECISIONS, resolve_precision
 from admc.model.settings import paper_settings, small_settings
-from admc.pipeline.denoisers import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
-                                     time_denoiser)
+from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
+                                                time_denoiser)
 
 CONFIGS = {
     "paper": paper_settings()[0].generator_config(),

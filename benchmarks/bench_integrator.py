@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from admc.pipeline.variants import use_variant
+from admc.pipeline.render.variants import use_variant
 
 
 def glossy_cornell_box(mi, size: int):
@@ -54,7 +54,7 @@ def main() -> None:
     variant = use_variant(args.variant)
     import mitsuba as mi
 
-    from admc.pipeline.integrator import render_buffers
+    from admc.pipeline.render.integrator import render_buffers
 
     scene = glossy_cornell_box(mi, args.size)
     path = mi.load_dict({"type": "path", "max_depth": args.max_depth})

@@ -71,7 +71,7 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
 
 
 def _print_dataset(result, summary_only: bool = False) -> None:
-    from admc.pipeline.dataset_report import contact_sheet
+    from admc.pipeline.dataset.report import contact_sheet
     from admc.stores.patches import store_summary
 
     for note in result.notes:
@@ -180,35 +180,6 @@ WeightsOpt = Annotated[Optional[Path], typer.Option(
 DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 
-def _denoiser(cfg, weights: Optional[Path], device: str, tile: int, name: str = "admc"):
-    from admc.model.denoiser import load_denoiser
-    from admc.model.trainer import resolve_device
-    from admc.pipeline.train_stage import default_weights
-
-    path = weights or default_weights(cfg)
-    console.print(f"weights{'' if name == 'admc' else ' ' + name}: {path}")
-    return load_denoiser(path, device=resolve_device(device), tile=tile, name=name)
-
-
-def _named_weights(specs: list[str]) -> list[tuple[str, Path]]:
-    """[(column name, path)] from --weights values PATH or NAME=PATH. One unnamed file is "admc"; several
-    are "admc-<run>" after their run folder (or file stem), so ablations sit side by side in Table 1."""
-    named = []
-    for spec in specs:
-        name, sep, rest = spec.partition("=")
-        if sep and not Path(spec).exists():
-            named.append((name, Path(rest)))
-        else:
-            path = Path(spec)
-            label = path.parent.name if path.stem in ("weights-fp16", "checkpoint") else path.stem
-            named.append((None if len(specs) == 1 else f"admc-{label}", path))
-    named = [(name or "admc", path) for name, path in named]
-    names = [name for name, _ in named]
-    if len(set(names)) != len(names):
-        raise typer.BadParameter(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
-    return named
-
-
 @app.command()
 @_user_errors
 def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s) with admc layer names, or "
@@ -220,7 +191,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                           "same).")] = 512,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
-    from admc.pipeline.denoise_io import DenoiseInputError, check_output_path, load_denoise_input
+    from admc.pipeline.train_stage import load_model
+    from admc.pipeline.user_files import DenoiseInputError, check_output_path, load_denoise_input
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -231,7 +203,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             source = load_denoise_input(path)
             target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
             check_output_path(target, source)
-            model = model or _denoiser(cfg, weights, device, tile)  # after the first input checks out
+            if model is None:  # after the first input checks out
+                model = load_model(cfg, weights, device, tile)
+                console.print(f"weights: {model.source}")
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
             if len(inputs) == 1:
@@ -245,7 +219,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 
 def _denoise_one(model, path: Path, source, target: Path) -> None:
     """Denoise one checked input into `target` and say what was done to it."""
-    from admc.pipeline.denoise_io import write_denoised
+    from admc.pipeline.user_files import write_denoised
 
     result = model(source.layers)
     write_denoised(target, result, source=source)
@@ -275,13 +249,14 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
                                                  "and OptiX where CUDA runs).")] = False) -> None:
     """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
     time, an HTML page."""
-    from admc.pipeline.eval_stage import run_eval
+    from admc.pipeline.eval_stage import learned_denoisers, run_eval
 
     cfg = _load(config, set_, scheduler)
     if no_model and weights:
         raise typer.BadParameter("--no-model and --weights contradict each other; give one")
-    named = _named_weights(weights) if weights else [("admc", None)]
-    extra = [] if no_model else [_denoiser(cfg, path, device, tile=512, name=name) for name, path in named]
+    extra = [] if no_model else learned_denoisers(cfg, weights, device)
+    for model in extra:
+        console.print(f"weights{'' if model.name == 'admc' else ' ' + model.name}: {model.source}")
     outcome = run_eval(cfg, extra=extra)
     console.print(outcome.result.files["table1_md"].read_text(), markup=False, highlight=False)
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")

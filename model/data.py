@@ -9,19 +9,13 @@ have been rendered.
 """
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import torch
-import zarr
 from torch.utils.data import DataLoader, Dataset
-from zarr.storage import LocalStore
 
-from admc.stores.patches import SPLITS, PatchReader, list_scenes
+from admc.stores.patches import PatchReader
 
 # Augmentation codes 0..7 are 3 bits, applied in this order: transpose, flip rows, flip columns.
 TRANSPOSE, FLIP_ROWS, FLIP_COLS = 1, 2, 4
@@ -150,16 +144,3 @@ def load_rows(reader: PatchReader, n: int) -> dict[str, torch.Tensor]:
     items = [reader[i] for i in range(count)]
     return {key: torch.from_numpy(np.stack([item[key] for item in items]))
             for key in ("noisy", "features", "reference")}
-
-
-def store_fingerprint(path: str | os.PathLike) -> str:
-    """sha256 over the store's root attributes and every split's scene ids and scene hashes.
-
-    Cheap (metadata only): it changes when scenes are added, removed or re-rendered, not when
-    patch bytes are edited in place.
-    """
-    root = zarr.open_group(store=LocalStore(Path(path), read_only=True), mode="r")
-    scenes = {split: {scene: root[f"{split}/{scene}"].attrs.get("scene_hash") for scene in list_scenes(path, split)}
-              for split in SPLITS}
-    text = json.dumps({"attrs": dict(root.attrs), "scenes": scenes}, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()

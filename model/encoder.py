@@ -8,8 +8,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-# Channel order of the auxiliary features everywhere in admc: normal(3), depth(1), albedo(3).
-FEATURE_CHANNELS = 7
+from admc.common.layout import N_FEATURES
 
 
 def conv3x3(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
@@ -28,7 +27,7 @@ class EncoderNet(nn.Module):
     def __init__(self, hidden_channels: int = 128, out_channels: int = 32) -> None:
         super().__init__()
         layers: list[nn.Module] = [
-            conv3x3(FEATURE_CHANNELS, hidden_channels),
+            conv3x3(N_FEATURES, hidden_channels),
             nn.LeakyReLU(0.1, inplace=True),
         ]
         for _ in range(3):

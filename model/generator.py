@@ -13,7 +13,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .encoder import FEATURE_CHANNELS, EncoderNet, conv3x3
+from admc.common.layout import N_FEATURES
+
+from .encoder import EncoderNet, conv3x3
 
 COLOR_CHANNELS = 3
 # "cfm": full model; "none": no auxiliary features; "concat": features concatenated to the input;
@@ -148,7 +150,7 @@ class Generator(nn.Module):
         super().__init__()
         self.config = config
         c = config.channels
-        in_channels = COLOR_CHANNELS + FEATURE_CHANNELS if config.mode == "concat" else COLOR_CHANNELS
+        in_channels = COLOR_CHANNELS + N_FEATURES if config.mode == "concat" else COLOR_CHANNELS
         self.encoder = EncoderNet(config.encoder_channels, config.cond_channels) if config.modulated else None
         self.head = conv3x3(in_channels, c)
         self._build_body()
@@ -204,7 +206,7 @@ class Generator(nn.Module):
             return
         if features is None:
             raise ValueError(f"Generator (mode {self.config.mode!r}): features are required")
-        expected = (noisy.shape[0], FEATURE_CHANNELS, *noisy.shape[2:])
+        expected = (noisy.shape[0], N_FEATURES, *noisy.shape[2:])
         if tuple(features.shape) != expected:
             raise ValueError(f"Generator: features must be {expected} to match noisy, got {tuple(features.shape)}")
 

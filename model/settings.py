@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from admc.common.layout import BRANCHES
+
 from .critic import NORMS, CriticConfig
 from .generator import BACKBONES, MODES, GeneratorConfig
 
-BRANCHES = ("diffuse", "specular")
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
 STAGES = ("pretrain", "finetune")

@@ -28,11 +28,12 @@ from tqdm import tqdm
 
 from admc.errors import AdmcError, DeviceError, TrainingError
 from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
+from admc.stores import patches
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from .branch import BranchTrainer
 from .distributed import RankFailed, Ranks, broadcast_modules, current, rank_device
-from .data import branch_seed, load_rows, store_fingerprint, train_loader
+from .data import branch_seed, load_rows, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
 from .precision import precision_name
@@ -249,7 +250,7 @@ class _Run:
             # processes sharing the CPU share its cores (torch would give each all of them)
             share = max(1, (os.cpu_count() or 1) // self.ranks.local_world)
             torch.set_num_threads(self.settings.threads or share)
-        self.fingerprint = store_fingerprint(self.store) if (self.store / "zarr.json").is_file() else None
+        self.fingerprint = patches.fingerprint(self.store) if patches.exists(self.store) else None
 
     def say(self, message: str) -> None:
         """Show a note now under the progress bar, or (without one) keep it for the caller to report."""

@@ -9,18 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from admc.common.layout import FEATURE_CHANNELS, FP16_MAX
+
 EPS = 0.00316
 """Added to albedo before demodulating diffuse (value from the authors' code)."""
-
-FP16_MAX = 65504.0
-"""Largest finite float16."""
 
 RADIANCE_MAX = FP16_MAX
 """Linear radiance is clamped here (+Inf and huge fireflies alike), so every stored value also
 inverts to an FP16-representable linear value. Directly seen emitters above it are clipped."""
-
-FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
-"""The authors' input order for the 7 auxiliary feature channels."""
 
 SPEC_VERSION = 1
 

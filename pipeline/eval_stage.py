@@ -1,4 +1,8 @@
-"""`admc-pipe eval`: the test split's full images through every denoiser, Table 1, plots, HTML page."""
+"""`admc-pipe eval`: the test split's full images through every denoiser, Table 1, plots, HTML page.
+
+The stage builds the methods (noisy input, OIDN, OptiX where it runs, the learned model from each
+weights file, named as Table 1's columns), runs the evaluation and renders the page from its result.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,15 +10,24 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.common.metrics import METRICS
 from admc.errors import AdmcError
-from admc.pipeline import evaluate, render, report_html, scenes, tile
 from admc.pipeline.config import Config
-from admc.pipeline.denoisers import Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, optix_unavailable_reason
-from admc.pipeline.metrics import METRICS
-from admc.pipeline.scenes import SceneSpec
+from admc.pipeline.dataset import tile
+from admc.pipeline.evaluation import evaluate, html
+from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser,
+                                                optix_unavailable_reason)
+from admc.pipeline.evaluation.inputs import find_test_images
+from admc.pipeline.evaluation.records import EvalResult
+from admc.pipeline.evaluation.table1 import build_table1
+from admc.pipeline.render import stage as render
+from admc.pipeline.render import scenes
+from admc.pipeline.render.scenes import SceneSpec
 from admc.pipeline.stages import render_corpus
+from admc.pipeline.train_stage import load_model
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
+MODEL_TILE = 512   # tile size of the learned denoiser in pixels (bounds memory; results are the same)
 
 
 class EvalStageError(AdmcError, RuntimeError):
@@ -23,7 +36,7 @@ class EvalStageError(AdmcError, RuntimeError):
 
 @dataclass
 class EvalOutcome:
-    result: evaluate.EvalResult
+    result: EvalResult
     report: Path
     scene_ids: list[str]
 
@@ -41,14 +54,39 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
     return chosen
 
 
-def _report_images(result: evaluate.EvalResult) -> list[report_html.ReportImage]:
-    metrics = {(r.scene_id, r.spp, r.method): {"1-SSIM": r.one_minus_ssim, "PSNR": r.psnr, "relMSE": r.relmse}
-               for r in result.records}
+def named_weights(specs: list[str]) -> list[tuple[str, Path]]:
+    """[(column name, path)] from --weights values PATH or NAME=PATH. One unnamed file is "admc"; several
+    are "admc-<run>" after their run folder (or file stem), so ablations sit side by side in Table 1."""
+    named = []
+    for spec in specs:
+        name, sep, rest = spec.partition("=")
+        if sep and not Path(spec).exists():
+            named.append((name, Path(rest)))
+        else:
+            path = Path(spec)
+            label = path.parent.name if path.stem in ("weights-fp16", "checkpoint") else path.stem
+            named.append((None if len(specs) == 1 else f"admc-{label}", path))
+    named = [(name or "admc", path) for name, path in named]
+    names = [name for name, _ in named]
+    if len(set(names)) != len(names):
+        raise EvalStageError(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
+    return named
+
+
+def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "auto") -> list[Denoiser]:
+    """The trained model once per weights file (default: this config's finetune, else pretrain run, else
+    the shipped weights), each named as its Table 1 column."""
+    named = named_weights(weights) if weights else [("admc", None)]
+    return [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
+
+
+def _report_images(result: EvalResult) -> list[html.ReportImage]:
+    metrics = {(r.scene_id, r.spp, r.method): {m.label: getattr(r, m.key) for m in METRICS} for r in result.records}
     images = []
     for scene in result.scenes[:REPORT_SCENES]:
         reference = np.load(scene.reference)
         for spp, outputs in sorted(scene.outputs.items()):
-            images.append(report_html.ReportImage(
+            images.append(html.ReportImage(
                 scene_id=scene.scene_id, spp=spp, reference=reference,
                 outputs={name: np.load(path) for name, path in outputs.items()},
                 metrics={name: metrics[(scene.scene_id, spp, name)] for name in outputs}))
@@ -69,7 +107,7 @@ def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
 
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:
     """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN, OptiX (where it
-    runs) and `extra` denoisers."""
+    runs) and `extra` denoisers (`learned_denoisers` for the trained model)."""
     optix, not_run = optix_denoisers(cfg.eval.optix)
     specs = eval_scenes(cfg)
     if not specs:
@@ -78,17 +116,14 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
                              f"add scenes or change tile.split")
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(cfg, progress, specs).renders_dir
-    images = evaluate.find_test_images(renders_dir, scene_ids)
+    images = find_test_images(renders_dir, scene_ids)
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
     result = evaluate.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
                                warmup=cfg.eval.warmup, not_run=not_run)
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
-    report = report_html.write_report(
-        out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
-        # the page has its own "Table 1" heading and prints the metric definitions in its header,
-        # so the Markdown file's title line and its copy of the definitions are left out
-        table_markdown=result.files["table1_md"].read_text().split("\n## Metric definitions")[0].split("\n", 1)[1],
+    report = html.write_report(
+        out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes", table=build_table1(result),
         metric_definitions={m.label: m.definition for m in METRICS},
         plots=[result.files["error_vs_time"]], images=_report_images(result), device=devices,
         notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])

@@ -4,14 +4,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from admc.errors import AdmcError
 import admc
+from admc.errors import AdmcError
 from admc.model import transforms
 from admc.model.critic import DOWNSAMPLING
-from admc.pipeline import render, runner, slurm, tile
+from admc.pipeline import runner, slurm
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
-from admc.pipeline.scenes import SceneError, SceneSpec
+from admc.pipeline.dataset import tile
+from admc.pipeline.render import stage as render
+from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.stores import patches
 from admc.stores.atomic import read_json
 
@@ -178,6 +180,6 @@ def check_patch_fits(cfg: Config, specs: list[SceneSpec]) -> None:
 def existing_dataset(cfg: Config) -> StageResult:
     """The store as it is, without rendering or tiling anything."""
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
-    if not (store_path / "zarr.json").is_file():
+    if not patches.exists(store_path):
         raise StageError(f"no patch store at {store_path}: run `admc-pipe dataset` first")
     return StageResult([], [], [], Path(cfg.run.workdir) / "renders", store_path, 0, 0, [])

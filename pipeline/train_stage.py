@@ -7,11 +7,13 @@ from collections import Counter
 from pathlib import Path
 
 import admc
+from admc.model.inference import FullImageDenoiser, load_denoiser
 from admc.model.settings import ModelSettings
 from admc.model import distributed
 from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_world, resolve_device, train
-from admc.pipeline import render, tile
 from admc.pipeline.config import Config, ConfigError
+from admc.pipeline.dataset import tile
+from admc.pipeline.render import stage as render
 from admc.pipeline.stages import StageError, build_dataset
 from admc.stores.checkpoints import load_checkpoint, read_networks
 
@@ -121,3 +123,9 @@ def default_weights(cfg: Config) -> Path:
         raise StageError(f"no trained weights under {cfg.workdir_path('train')} and none shipped for this "
                          "[model] config: run `admc-pipe train` or pass --weights")
     return shipped
+
+
+def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int = 512,
+               name: str = "admc") -> FullImageDenoiser:
+    """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda)."""
+    return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name)

@@ -13,6 +13,7 @@ import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 
+from admc.common.layout import FP16_MAX
 from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
@@ -31,7 +32,6 @@ LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
 }
 # Layers where a negative value means a broken render (normals are legitimately negative).
 NONNEGATIVE_LAYERS = frozenset({"diffuse", "specular", "albedo", "depth", "coverage", "diffuse_var", "specular_var"})
-HALF_MAX = float(np.finfo(np.float16).max)  # 65504
 PRECISIONS = {"half": np.float16, "float": np.float32}
 # Header attributes OpenEXR manages itself: user attributes must not shadow them.
 RESERVED_ATTRIBUTES = frozenset({
@@ -72,7 +72,7 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "ha
         overflow = np.isinf(stored) & np.isfinite(array)
         if overflow.any():
             raise ExrError(f"{path}: layer {name!r} has {int(overflow.sum())} finite values beyond "
-                           f"+-{HALF_MAX:g} that half precision would turn into inf; clamp them or use "
+                           f"+-{FP16_MAX:g} that half precision would turn into inf; clamp them or use "
                            f"precision='float'")
         for i, channel in enumerate(LAYER_CHANNELS[name]):
             channels[_full_name(name, channel)] = np.ascontiguousarray(stored[:, :, i])

@@ -1,7 +1,7 @@
 """Shared fixtures. Tests render with the best JIT variant this machine has (llvm_ad_rgb on CI)."""
 import pytest
 
-from admc.pipeline.variants import use_variant
+from admc.pipeline.render.variants import use_variant
 
 
 @pytest.fixture(scope="session")

@@ -82,8 +82,8 @@ def test_model_and_train_errors_name_the_key(override, key):
 
 
 def test_pretrain_corpus_is_disjoint_from_the_default_corpus_and_has_every_family():
-    from admc.pipeline.render import corpus
-    from admc.pipeline.scenes import FAMILIES
+    from admc.pipeline.render.stage import corpus
+    from admc.pipeline.render.scenes import FAMILIES
 
     pretrain, default = load_config(REPO / "configs" / "pretrain.toml"), load_config()
     specs = corpus(pretrain)

@@ -5,9 +5,8 @@ import pytest
 import torch
 
 from conftest import build_tiny_store
-from admc.model.data import (N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, store_fingerprint,
-                             train_loader)
-from admc.stores.patches import PatchReader
+from admc.model.data import N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, train_loader
+from admc.stores.patches import PatchReader, fingerprint as store_fingerprint
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from admc.model import transforms as tf
-from admc.pipeline import tile
 from admc.pipeline.config import load_config
+from admc.pipeline.dataset import tile
 from admc.pipeline.stages import build_dataset
 from admc.stores import exr, patches
 
@@ -24,7 +24,7 @@ def tiny(workdir, n_scenes):
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    from admc.pipeline.variants import use_variant
+    from admc.pipeline.render.variants import use_variant
     use_variant("auto")
     workdir = tmp_path_factory.mktemp("dataset")
     return workdir, build_dataset(tiny(workdir, 3), progress=False)
@@ -204,3 +204,16 @@ def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
     assert patches.list_scenes(result.store, "train") == ["xml-kitchen"]
     reader = patches.PatchReader(result.store, "train", branch="specular")
     assert len(reader) == 2, "the rough plastic sphere makes it a specular scene"
+
+
+def test_tiled_scenes_match_the_documented_layout(built):
+    """One reference entry per row, as patches.LAYOUT says: crop is the identity and n_crops == n_rows."""
+    import zarr
+    workdir, result = built
+    root = zarr.open_group(str(result.store), mode="r")
+    for summary in result.tiles:
+        group = root[f"{summary['split']}/{summary['scene_id']}"]
+        n = group["spp"].shape[0]
+        assert group.attrs["n_crops"] == group.attrs["n_rows"] == n == group["origin"].shape[0]
+        np.testing.assert_array_equal(group["crop"][:], np.arange(n))
+        assert group["ref_diffuse"].shape[0] == n

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from admc.pipeline.config import load_config
-from admc.pipeline.denoisers import optix_unavailable_reason
 from admc.pipeline.eval_stage import EvalStageError, eval_scenes, run_eval
+from admc.pipeline.evaluation.baselines import optix_unavailable_reason
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
@@ -83,3 +83,11 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
     (scene,) = outcome.result.scenes
     assert np.load(scene.reference).shape == (30, 40, 3), "the film's 40x30, not render.resolution"
     assert {row.method for row in outcome.result.table} >= {"noisy", "oidn"}
+
+
+def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
+    from admc.pipeline.eval_stage import named_weights
+    assert named_weights(["runs/a/weights-fp16.pt"]) == [("admc", Path("runs/a/weights-fp16.pt"))]
+    assert [n for n, _ in named_weights(["runs/a/weights-fp16.pt", "base=x.pt"])] == ["admc-a", "base"]
+    with pytest.raises(EvalStageError, match=r"would be named \['admc-a', 'admc-a'\]; name them apart"):
+        named_weights(["runs/a/weights-fp16.pt", "other/a/checkpoint.pt"])

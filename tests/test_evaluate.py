@@ -10,12 +10,14 @@ import pyoidn
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from admc.common.metrics import METRICS, score, to_ldr
 from admc.pipeline.config import load_config
-from admc.pipeline.denoisers import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
-                                     optix_unavailable_reason, time_denoiser)
-from admc.pipeline.render import view_space_normals
-from admc.pipeline.evaluate import EvalError, best_percent, evaluate, find_test_images
-from admc.pipeline.metrics import METRICS, score, to_ldr
+from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
+                                                optix_unavailable_reason, time_denoiser)
+from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.inputs import find_test_images
+from admc.pipeline.evaluation.records import EvalError, best_percent
+from admc.pipeline.render.stage import view_space_normals
 from admc.pipeline.stages import render_corpus
 from admc.stores.exr import read_exr, write_exr
 
@@ -314,7 +316,7 @@ def test_denoiser_names_are_checked(renders, tmp_path):
 def test_reference_floor_predicts_the_relmse_between_two_independent_references(variant, tmp_path):
     """Two references of the same scene rendered with other seeds differ by about the sum of their floors:
     the variance layers say how noisy a reference is (measured: within 10 % on these four scenes)."""
-    from admc.pipeline.metrics import reference_floor, relmse
+    from admc.common.metrics import reference_floor, relmse
 
     folders = []
     for seed in (0, 1):
@@ -330,7 +332,7 @@ def test_reference_floor_predicts_the_relmse_between_two_independent_references(
 
 
 def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
-    from admc.pipeline.metrics import reference_floor
+    from admc.common.metrics import reference_floor
 
     result, out = evaluated
     floors = {}

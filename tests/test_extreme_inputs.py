@@ -14,13 +14,14 @@ import pytest
 import torch
 from scipy.ndimage import maximum_filter
 
-from admc.model.denoiser import FullImageDenoiser, load_denoiser, receptive_radius
-from admc.model.settings import ModelSettings
+from admc.common.metrics import one_minus_ssim
 from admc.model.generator import Generator
+from admc.model.inference import FullImageDenoiser, load_denoiser, receptive_radius
+from admc.model.settings import ModelSettings
 from admc.model.transforms import transform_spec
-from admc.pipeline.denoisers import NoisyInput, OidnDenoiser, noisy_color
-from admc.pipeline.evaluate import TestImage, evaluate
-from admc.pipeline.metrics import one_minus_ssim
+from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
+from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.records import TestImage
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import write_exr
 
@@ -105,7 +106,7 @@ def test_eval_on_extreme_cases_gives_finite_metrics_and_complete_tables(model, t
 def test_real_one_spp_renders_through_eval(model, variant, tmp_path):
     """1 spp from the real integrator (the stiffest input a user can render), not a synthetic stand-in."""
     from admc.pipeline.config import load_config
-    from admc.pipeline.evaluate import find_test_images
+    from admc.pipeline.evaluation.inputs import find_test_images
     from admc.pipeline.stages import render_corpus
 
     cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
@@ -155,9 +156,9 @@ def _render(scene_dict: dict, spp: int, seed: int) -> dict[str, np.ndarray]:
     """The render stage's buffers for one scene: the project's integrator, view-space normals."""
     import mitsuba as mi
 
-    from admc.pipeline import integrator
-    from admc.pipeline.render import view_space_normals
-    from admc.pipeline.scenes import analyse
+    from admc.pipeline.render import integrator
+    from admc.pipeline.render.stage import view_space_normals
+    from admc.pipeline.render.scenes import analyse
 
     scene = mi.load_dict(scene_dict)
     layers = integrator.render_buffers(scene, spp, seed, split=analyse(scene).has_specular)

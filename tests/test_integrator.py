@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from admc.pipeline.integrator import INTEGRATOR_NAME, pass_seeds, register, render_buffers
+from admc.pipeline.render.integrator import INTEGRATOR_NAME, pass_seeds, register, render_buffers
 
 SIZE = 32
 BOX_FILM = {"type": "hdrfilm", "width": SIZE, "height": SIZE, "rfilter": {"type": "box"}}
@@ -282,7 +282,7 @@ def test_bad_arguments_raise(variant):
 
 
 def test_variants_are_only_those_the_integrator_accepts_and_llvm_is_found():
-    from admc.pipeline.variants import PREFERENCE, VariantError, _llvm_major, find_llvm, resolve_variant
+    from admc.pipeline.render.variants import PREFERENCE, VariantError, _llvm_major, find_llvm, resolve_variant
 
     assert resolve_variant("auto") in PREFERENCE
     for name in ("scalar_rgb", "llvm_ad_spectral"):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from admc.pipeline import metrics
+from admc.common import metrics
 
 
 def _pair(shape, seed=0, noise=0.2):
@@ -98,3 +98,36 @@ def test_metric_table_carries_definitions_and_directions():
     assert by_key["relmse"].lower_is_better and by_key["one_minus_ssim"].lower_is_better
     assert "0.5" in by_key["relmse"].definition and "100 dB" in by_key["psnr"].definition
     assert "sigma 1.5" in by_key["one_minus_ssim"].definition
+
+
+def _batch(seed=0):
+    """(N, C, H, W) float64 pairs with highlights, exact matches and a NaN: what validation scores."""
+    pairs = [_pair((9, 7, 3), seed=seed + i) for i in range(3)]
+    x = np.stack([p[0] for p in pairs]).astype(np.float64)
+    ref = np.stack([p[1] for p in pairs]).astype(np.float64)
+    x[0, :2] *= 40.0                # beyond 1: clipped by the tone map, not by relMSE
+    x[1] = ref[1]                   # identical: PSNR capped, relMSE 0
+    x[2, 4, 3, 1] = np.nan          # the non-finite rule applies on both sides
+    return x, ref
+
+
+def test_torch_metrics_equal_numpy_ones_per_sample():
+    """Validation (torch, per sample) and evaluation (NumPy, per image) compute the same numbers."""
+    import torch
+    x, ref = _batch()
+    tx, tref = torch.from_numpy(x).permute(0, 3, 1, 2), torch.from_numpy(ref).permute(0, 3, 1, 2)
+    np.testing.assert_array_equal(metrics.to_ldr_torch(tx).permute(0, 2, 3, 1).numpy(),
+                                  np.stack([metrics.to_ldr(v) for v in x]).astype(np.float64))
+    relmse, psnr = metrics.relmse_torch(tx, tref).tolist(), metrics.psnr_torch(tx, tref).tolist()
+    for i in range(len(x)):
+        # float64 on both sides; only the summation order differs
+        assert relmse[i] == pytest.approx(metrics.relmse(x[i], ref[i]), rel=1e-12)
+        assert psnr[i] == pytest.approx(metrics.psnr(x[i], ref[i]), rel=1e-12)
+    assert psnr[1] == metrics.PSNR_CAP_DB and relmse[1] == 0.0
+
+
+def test_reinhard_compresses_highlights_before_the_tone_map():
+    x = np.array([[[0.0, 1.0, 3.0], [-2.0, np.inf, np.nan]]])
+    assert metrics.reinhard(x).tolist() == [[[0.0, 0.5, 0.75], [0.0, 0.0, 0.0]]]
+    assert metrics.to_ldr(metrics.reinhard(x))[0, 0].tolist() == [0, round(255 * 0.5 ** (1 / 2.2)),
+                                                                   round(255 * 0.75 ** (1 / 2.2))]

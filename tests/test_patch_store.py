@@ -294,3 +294,17 @@ def test_store_summary_counts(store):
     assert 0.0 <= lo < 0.01 and 0.99 < hi <= 1.0
     assert summary["splits"]["test"]["rows"]["specular"] == 6
     assert summary["sanitization"] == {"diffuse": {"nan": 6, "posinf": 3}}
+
+
+def test_a_store_of_an_older_format_is_refused_with_what_to_do(tmp_path):
+    """format_version 1 promised references shared per image crop; this code writes one per row."""
+    path = tmp_path / "old.zarr"
+    assert not P.exists(path)
+    P.create_store(path, ROOT_ATTRS)
+    assert P.exists(path) and P.FORMAT_VERSION == 2
+    zarr.open_group(store=LocalStore(path), mode="r+").attrs["format_version"] = 1
+    for opening in (lambda: P.PatchReader(path, "train"), lambda: P.fingerprint(path),
+                    lambda: P.create_store(path, ROOT_ATTRS)):
+        with pytest.raises(P.PatchStoreError, match=r"format_version 1, this code reads 2; written by an older "
+                                                    r"admc: move it away .* run `admc-pipe dataset`"):
+            opening()

@@ -77,8 +77,8 @@ def test_cli_render_then_cache_listing_and_clear(tmp_path, variant):
 def test_normals_are_in_view_space(variant):
     """Cornell box: the left wall faces right (+x), the ceiling down (-y); nothing visible faces away."""
     import mitsuba as mi
-    from admc.pipeline import integrator
-    from admc.pipeline.render import view_space_normals
+    from admc.pipeline.render import integrator
+    from admc.pipeline.render.stage import view_space_normals
 
     integrator.register()
     box = mi.cornell_box()

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from admc.pipeline.scenes import (
+from admc.pipeline.render.scenes import (
     FAMILIES,
     SceneError,
     SceneSpec,
@@ -21,8 +21,8 @@ from admc.pipeline.scenes import (
     scene_hash,
     xml_corpus,
 )
-from admc.pipeline.scenes.staging import family_rng
-from admc.pipeline.scenes.meshes import bumpy_sphere, heightfield, lathe
+from admc.pipeline.render.scenes.meshes import bumpy_sphere, heightfield, lathe
+from admc.pipeline.render.scenes.staging import family_rng
 
 RES = (32, 32)
 
@@ -57,7 +57,7 @@ def test_different_seeds_give_different_hashes(family):
 def test_hash_does_not_depend_on_the_process():
     """Another interpreter with another str-hash seed computes the same hashes (no set/dict-order leaks)."""
     specs = [SceneSpec(f"{family}-2", family, 2, RES) for family in sorted(FAMILIES)]
-    code = ("from admc.pipeline.scenes import SceneSpec, scene_hash\n"
+    code = ("from admc.pipeline.render.scenes import SceneSpec, scene_hash\n"
             f"print(' '.join(scene_hash(SceneSpec(f'{{f}}-2', f, 2, {RES!r})) for f in {sorted(FAMILIES)!r}))")
     env = dict(os.environ, PYTHONHASHSEED="12345")
     other = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()

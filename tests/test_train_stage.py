@@ -158,7 +158,7 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
 def test_the_default_config_finds_the_shipped_weights_and_they_load():
     """`make demo` fine-tunes from weights/: the default [model] must match a manifest entry (settings
     added after the weights were shipped take the defaults that reproduce them)."""
-    from admc.model.denoiser import load_denoiser
+    from admc.model.inference import load_denoiser
 
     model = load_config().model
     path = shipped_weights(model)

@@ -152,3 +152,17 @@ def test_transform_spec_is_json_and_names_parameters():
     assert spec["feature_channels"] == ["normal.X", "normal.Y", "normal.Z", "depth",
                                         "albedo.R", "albedo.G", "albedo.B"]
     assert T.TRANSFORM_PARAMS == spec
+
+
+def test_feature_layout_slices_name_the_channels_transforms_writes():
+    """The named slices of admc.common.layout pick the buffers `features` concatenates."""
+    from admc.common.layout import ALBEDO, DEPTH, FEATURE_CHANNELS, N_FEATURES, NORMAL
+    rng = np.random.default_rng(0)
+    normal, albedo = rng.uniform(-1, 1, (4, 5, 3)), rng.uniform(0, 1, (4, 5, 3))
+    depth, coverage = rng.uniform(1, 2, (4, 5, 1)), np.ones((4, 5, 1))
+    f = T.features(normal, depth, albedo, coverage)
+    assert f.shape[-1] == N_FEATURES == len(FEATURE_CHANNELS)
+    np.testing.assert_array_equal(f[..., NORMAL], T.normal_forward(normal))
+    np.testing.assert_array_equal(f[..., DEPTH], T.depth_forward(depth, coverage))
+    np.testing.assert_array_equal(f[..., ALBEDO], T.albedo_forward(albedo))
+    assert [FEATURE_CHANNELS[s][0].split(".")[0] for s in (NORMAL, DEPTH, ALBEDO)] == ["normal", "depth", "albedo"]

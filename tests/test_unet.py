@@ -7,8 +7,8 @@ import torch
 from torch import nn
 
 from admc.model.branch import BranchTrainer
-from admc.model.denoiser import FullImageDenoiser, load_denoiser, receptive_radius, run_tiled
 from admc.model.generator import Generator, GeneratorConfig, build_generator, scaled_kaiming_
+from admc.model.inference import FullImageDenoiser, load_denoiser, receptive_radius, run_tiled
 from admc.model.settings import ModelSettings, TrainSettings
 from admc.model.transforms import transform_spec
 from admc.model.unet import UNetGenerator
@@ -88,7 +88,7 @@ def test_full_image_denoiser_tiles_a_unet_exactly_and_loads_it_from_weights(tmp_
     tiled = FullImageDenoiser(g, None, tile=16)(layers)
     untiled = FullImageDenoiser(g, None, tile=512)(layers)
     assert tiled.tiles == 12 and untiled.tiles == 1
-    gain = np.abs(untiled.diffuse) + layers["albedo"] + 0.00316  # d(linear)/d(log), as in test_denoiser
+    gain = np.abs(untiled.diffuse) + layers["albedo"] + 0.00316  # d(linear)/d(log), as in test_inference
     assert np.all(np.abs(tiled.diffuse - untiled.diffuse) <= gain * 1e-5 * 1.001)
 
     model = ModelSettings(channels=4, blocks=1, cond_channels=4, encoder_channels=8, critic_channels=4,

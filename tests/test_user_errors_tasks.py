@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from admc.pipeline.scenes import SceneError, load_scene, scene_hash, xml_corpus
+from admc.pipeline.render.scenes import SceneError, load_scene, scene_hash, xml_corpus
 from admc.stores import patches
 from test_scenes import QUAD_OBJ, SCENE_XML, write_kitchen_scene
 

@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from admc.pipeline.variants import available_variants
+from admc.pipeline.render.variants import available_variants
 
 OIDN_QUALITIES = ("high", "balanced", "fast")
 

@@ -4,7 +4,8 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.denoiser import (
+from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
+from admc.model.inference import (
     LOG_MAX,
     MISSING_DEPTH,
     FullImageDenoiser,
@@ -12,7 +13,6 @@ from admc.model.denoiser import (
     receptive_radius,
     run_tiled,
 )
-from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

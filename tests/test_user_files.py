@@ -4,9 +4,9 @@ import OpenEXR
 import pytest
 import torch
 
-from admc.model.denoiser import FullImageDenoiser
 from admc.model.generator import Generator, GeneratorConfig
-from admc.pipeline.denoise_io import DenoiseInputError, load_denoise_input, write_denoised
+from admc.model.inference import FullImageDenoiser
+from admc.pipeline.user_files import DenoiseInputError, load_denoise_input, write_denoised
 from admc.stores.exr import ExrError, read_exr, write_exr
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from admc.pipeline.report_html import MAX_EMBED, ReportImage, embed_size, markdown_to_html, write_report
+from admc.pipeline.evaluation.html import MAX_EMBED, ReportImage, embed_size, table_html, write_report
+from admc.pipeline.evaluation.table1 import Cell, Note, Table1
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
@@ -29,12 +30,10 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed "
                                     "(apt-get install -y chromium chromium-driver; CI does)")
 
-TABLE = """### 4 spp
-| denoiser | 1-SSIM | PSNR | relMSE |
-| :--- | ---: | ---: | :---: |
-| noisy | 0.41 | 21.3 | 0.0975 |
-| ours | **0.05** | **33.9** | **0.0079** |
-"""
+TABLE = Table1(head=["spp", "denoiser", "1-SSIM", "PSNR", "relMSE"],
+               rows=[[Cell("4"), Cell("noisy"), Cell("0.41"), Cell("21.3"), Cell("0.0975")],
+                     [Cell(""), Cell("ours"), Cell("0.05", True), Cell("33.9", True), Cell("0.0079", True)]],
+               notes=[Note("", "Best average in bold."), Note("Devices:", "noisy: cpu; ours: <cpu>")])
 
 
 # ---------------------------------------------------------------- inputs
@@ -63,7 +62,7 @@ def _plot(path: Path) -> Path:
 
 
 def _report(tmp_path: Path, images: list[ReportImage], notes: tuple[str, ...] = ()) -> Path:
-    return write_report(tmp_path / "report", title="admc evaluation <test>", table_markdown=TABLE,
+    return write_report(tmp_path / "report", title="admc evaluation <test>", table=TABLE,
                         metric_definitions={"relMSE": "mean (x - ref)^2 / (ref^2 + 0.01)", "PSNR": "dB on 8 bit"},
                         plots=[_plot(tmp_path / "error_vs_time.png")], images=images, device="cpu (test)",
                         notes=list(notes))
@@ -89,25 +88,15 @@ def _decode(uri: str) -> np.ndarray:
 
 # ---------------------------------------------------------------- Python side, no browser
 
-def test_markdown_table_alignment_bold_and_headings():
-    out = markdown_to_html(TABLE)
-    assert "<h3>4 spp</h3>" in out
-    assert out.count("<tr>") == 3 and out.count("<th ") == 4
-    assert '<th style="text-align:left">denoiser</th>' in out
-    assert '<td style="text-align:right"><strong>33.9</strong></td>' in out
-    assert '<td style="text-align:center"><strong>0.0079</strong></td>' in out
-    assert '<td style="text-align:right">0.41</td>' in out
-    assert "&lt;b&gt;" in markdown_to_html("| a |\n|---|\n| <b> |")
-
-
-@pytest.mark.parametrize("markdown, message", [
-    ("| a | b |\n| 1 | 2 |", "line 2: a table's second row must be the |---| separator"),
-    ("| a | b |\n|---|---|\n| 1 | 2 | 3 |", "line 3: 3 cells, header has 2"),
-    ("| a | b |\n|---|", "line 2: separator has 1 cells, header has 2"),
-])
-def test_markdown_table_errors_name_the_line(markdown, message):
-    with pytest.raises(ValueError, match=message.replace("|", r"\|")):
-        markdown_to_html(markdown)
+def test_table_cells_bold_notes_and_escaping():
+    """The page renders the Table1 object itself: its cells, the best ones <strong>, its notes, escaped."""
+    out = table_html(TABLE)
+    assert out.count("<tr>") == 3 and out.count("<th>") == 5
+    assert "<th>denoiser</th>" in out and "<td>0.41</td>" in out and "<td></td>" in out
+    assert "<td><strong>33.9</strong></td>" in out and "<td><strong>0.0079</strong></td>" in out
+    assert "<p>Best average in bold.</p>" in out
+    assert "<p><strong>Devices:</strong> noisy: cpu; ours: &lt;cpu&gt;</p>" in out
+    assert TABLE.markdown().splitlines()[3] == "|  | ours | **0.05** | **33.9** | **0.0079** |"
 
 
 def test_bad_inputs_raise_clear_errors(tmp_path):
@@ -117,7 +106,7 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
         _report(tmp_path, [item])
     not_png = tmp_path / "plot.png"
     not_png.write_text("nope")
-    kwargs = dict(title="t", table_markdown="", metric_definitions={}, images=[], device="cpu")
+    kwargs = dict(title="t", table=Table1([], [], []), metric_definitions={}, images=[], device="cpu")
     with pytest.raises(ValueError, match="plot.png: not a PNG file"):
         write_report(tmp_path / "r", plots=[not_png], **kwargs)
     with pytest.raises(ValueError, match="missing.png: no such file"):

@@ -16,11 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from admc.pipeline import integrator, scenes
+from admc.common.layout import FP16_MAX
 from admc.pipeline.cache import Task, code_version
 from admc.pipeline.config import Config
-from admc.pipeline.scenes import SceneSpec
-from admc.pipeline.variants import use_variant
+from admc.pipeline.render import integrator, scenes
+from admc.pipeline.render.scenes import SceneSpec
+from admc.pipeline.render.variants import use_variant
 from admc.stores import exr
 
 EXR_NAME = "render.exr"
@@ -39,9 +40,9 @@ def _half_safe(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], in
     clamped, out = 0, {}
     for name, arr in layers.items():
         finite = np.isfinite(arr)
-        over = finite & (np.abs(arr) > exr.HALF_MAX)
+        over = finite & (np.abs(arr) > FP16_MAX)
         clamped += int(over.sum())
-        out[name] = np.where(over, np.sign(arr) * exr.HALF_MAX, arr).astype(np.float32)
+        out[name] = np.where(over, np.sign(arr) * FP16_MAX, arr).astype(np.float32)
     return out, clamped
 
 

@@ -1,7 +1,8 @@
 """The evaluation report as one self-contained HTML file a person opens in any browser, offline.
 
 Everything is inside index.html: images and plots as base64 PNG data URIs, CSS and a little vanilla
-JS inline, no fonts or scripts from the network, so the file can be mailed or archived as is.
+JS inline (the page, its CSS and JS are the package files in templates/), no fonts or scripts from
+the network, so the file can be mailed or archived as is. Table 1 comes as a Table1 object.
 
 Display rules (also printed on the page):
 - images are tone-mapped with clip(max(x, 0)^(1/2.2)) to 8 bit, no exposure change: the same display
@@ -19,16 +20,18 @@ from __future__ import annotations
 import base64
 import html
 import io
-import re
 from dataclasses import dataclass
 from datetime import datetime
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 from matplotlib import colormaps
 from PIL import Image
 
-from admc.pipeline.metrics import GAMMA, RELMSE_EPS as HEAT_EPS  # one definition: heat maps show relMSE per pixel
+from admc.pipeline.evaluation.table1 import Cell, Table1
+
+from admc.common.metrics import GAMMA, RELMSE_EPS as HEAT_EPS, to_ldr  # one definition: heat maps show relMSE per pixel
 
 MAX_EMBED = (1280, 720)          # (width, height) of the largest image embedded at full resolution
 THUMB = (240, 240)               # (width, height) box the overview thumbnails fit into
@@ -49,23 +52,23 @@ class ReportImage:
     metrics: dict[str, dict[str, float]]  # denoiser name -> {"1-SSIM": .., "PSNR": .., "relMSE": ..}
 
 
-def write_report(out_dir: Path, *, title: str, table_markdown: str, metric_definitions: dict[str, str],
+def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions: dict[str, str],
                  plots: list[Path], images: list[ReportImage], device: str, notes: list[str] = ()) -> Path:
     """Write out_dir/index.html (header, Table 1, plots, image comparisons with zoom) and return its path."""
     notes = list(notes)
     groups = [_group_html(index, item, notes) for index, item in enumerate(images)]
-    page = _PAGE.format(
+    page = _template("report.html").format(
         title=_esc(title),
         device=_esc(device),
         date=_esc(datetime.now().astimezone().isoformat(timespec="seconds")),
         definitions="\n".join(f"<dt>{_esc(k)}</dt><dd>{_esc(v)}</dd>" for k, v in metric_definitions.items()),
         display_rules=_DISPLAY_RULES,
         notes="\n".join(f"<li>{_esc(n)}</li>" for n in notes),
-        table=markdown_to_html(table_markdown),
+        table=table_html(table),
         plots="\n".join(_plot_html(Path(p)) for p in plots),
         groups="\n".join(groups),
-        css=_CSS,
-        js=_JS,
+        css=_template("report.css"),
+        js=_template("report.js"),
     )
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -76,60 +79,18 @@ def write_report(out_dir: Path, *, title: str, table_markdown: str, metric_defin
     return path
 
 
-# ---------------------------------------------------------------- markdown (the pipe-table subset)
+# ---------------------------------------------------------------- Table 1
 
-def markdown_to_html(markdown: str) -> str:
-    """Pipe tables (with :--: alignment), '#' headings and plain lines; **bold** inside cells and lines."""
-    blocks: list[str] = []
-    table: list[tuple[int, str]] = []
-    for number, line in enumerate(markdown.splitlines(), 1):
-        text = line.strip()
-        if text.startswith("|"):
-            table.append((number, text))
-            continue
-        if table:
-            blocks.append(_table_html(table))
-            table = []
-        if text.startswith("#"):
-            blocks.append(f"<h3>{_inline(text.lstrip('#').strip())}</h3>")
-        elif text:
-            blocks.append(f"<p>{_inline(text)}</p>")
-    if table:
-        blocks.append(_table_html(table))
-    return "\n".join(blocks)
-
-
-def _cells(row: str) -> list[str]:
-    return [c.strip() for c in row.strip().removeprefix("|").removesuffix("|").split("|")]
-
-
-def _table_html(rows: list[tuple[int, str]]) -> str:
-    (_, header), *rest = rows
-    heads = _cells(header)
-    if not rest or not all(re.fullmatch(r":?-+:?", c) for c in _cells(rest[0][1])):
-        line = rest[0][0] if rest else rows[0][0]
-        raise ValueError(f"table_markdown line {line}: a table's second row must be the |---| separator")
-    separator = _cells(rest[0][1])
-    if len(separator) != len(heads):
-        raise ValueError(f"table_markdown line {rest[0][0]}: separator has {len(separator)} cells, "
-                         f"header has {len(heads)}")
-    aligns = ["center" if s.startswith(":") and s.endswith(":") else "right" if s.endswith(":")
-              else "left" for s in separator]
-    out = ["<table>", "<thead><tr>"]
-    out += [f'<th style="text-align:{a}">{_inline(h)}</th>' for h, a in zip(heads, aligns)]
-    out.append("</tr></thead><tbody>")
-    for number, row in rest[1:]:
-        cells = _cells(row)
-        if len(cells) != len(heads):
-            raise ValueError(f"table_markdown line {number}: {len(cells)} cells, header has {len(heads)}")
-        out.append("<tr>" + "".join(f'<td style="text-align:{a}">{_inline(c)}</td>'
-                                    for c, a in zip(cells, aligns)) + "</tr>")
+def table_html(table: Table1) -> str:
+    """Table 1 and its notes as HTML: the cells of the Table1 object, best values <strong>."""
+    def cell(tag: str, c: Cell) -> str:
+        return f"<{tag}><strong>{_esc(c.text)}</strong></{tag}>" if c.bold else f"<{tag}>{_esc(c.text)}</{tag}>"
+    out = ["<table>", "<thead><tr>" + "".join(cell("th", Cell(h)) for h in table.head) + "</tr></thead><tbody>"]
+    out += ["<tr>" + "".join(cell("td", c) for c in row) + "</tr>" for row in table.rows]
     out.append("</tbody></table>")
+    out += [f"<p><strong>{_esc(n.label)}</strong> {_esc(n.text)}</p>" if n.label else f"<p>{_esc(n.text)}</p>"
+            for n in table.notes]
     return "\n".join(out)
-
-
-def _inline(text: str) -> str:
-    return re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", _esc(text))
 
 
 def _esc(text: object) -> str:
@@ -144,7 +105,7 @@ def display_rgb(linear: np.ndarray) -> np.ndarray:
     clean = np.where(np.isfinite(linear), np.maximum(linear, 0.0), 0.0).astype(np.float32)
     size = embed_size(linear.shape)
     small = _resize(clean, size)
-    rgb = np.rint(np.clip(small, 0.0, 1.0) ** (1.0 / GAMMA) * 255).astype(np.uint8)
+    rgb = to_ldr(small)
     rgb[_resize(bad[..., None].astype(np.float32), size)[..., 0] > 0] = MAGENTA
     return rgb
 
@@ -290,121 +251,7 @@ _DISPLAY_RULES = (
     f"unpin it. The magnification is set at the top.</li>"
 )
 
-_CSS = """
-body { background: #1e1e1e; color: #ddd; font: 14px/1.4 system-ui, sans-serif; margin: 1em 2em; }
-h1 { margin-bottom: 0.2em; } h3 small { color: #999; font-weight: normal; }
-table { border-collapse: collapse; margin: 0.5em 0 1em; }
-th, td { border: 1px solid #555; padding: 2px 8px; } th { background: #333; }
-strong { color: #fff; }
-dt { font-weight: bold; } dd { margin: 0 0 0.5em 1.5em; white-space: pre-wrap; color: #bbb; }
-.plot { display: inline-block; margin: 0 1em 1em 0; } .plot img { max-width: 640px; background: #fff; }
-.group { border-top: 1px solid #444; padding-top: 0.5em; }
-.row { display: flex; flex-wrap: wrap; gap: 12px; align-items: flex-start; margin-bottom: 10px; }
-.fig, .legend { margin: 0; width: 240px; }
-figcaption { font-weight: bold; margin-bottom: 2px; overflow-wrap: anywhere; }
-.frame { position: relative; display: inline-block; line-height: 0; cursor: crosshair; }
-img.px { display: block; background: #000; }
-img.up, canvas.zoom { image-rendering: pixelated; }
-.marker { position: absolute; border: 1px solid #0f0; pointer-events: none; box-sizing: border-box; }
-.metrics { font-size: 12px; color: #bbb; } .warn { color: #f4f; font-weight: bold; }
-canvas.zoom { display: block; margin-top: 4px; width: 160px; height: 160px; border: 1px solid #0f0; }
-canvas.zoom[hidden] { display: none; }
-.group.pinned canvas.zoom { border-color: #ff0; }
-.bar { display: block; width: 240px; height: 14px; image-rendering: pixelated; }
-.ticks { display: flex; justify-content: space-between; font-size: 11px; }
-"""
 
-# Zoom: every canvas of a group shows the same source pixels (same fractional position), magnified
-# without smoothing. body[data-ready] reports whether every <img> decoded, for people and tests.
-_JS = """
-(function () {
-  "use strict";
-  const BOX = 160;
-  const level = document.getElementById("zoom-level");
-  function render(group) {
-    const u = Number(group.dataset.u), v = Number(group.dataset.v), zoom = Number(level.value);
-    for (const fig of group.querySelectorAll(".fig")) {
-      const img = fig.querySelector("img.px"), canvas = fig.querySelector("canvas.zoom");
-      const marker = fig.querySelector(".marker");
-      const w = img.naturalWidth, h = img.naturalHeight, span = BOX / zoom;
-      const x = Math.min(w - 1, Math.floor(u * w)), y = Math.min(h - 1, Math.floor(v * h));
-      const ctx = canvas.getContext("2d");
-      ctx.imageSmoothingEnabled = false;
-      ctx.fillStyle = "#303030";
-      ctx.fillRect(0, 0, BOX, BOX);
-      ctx.drawImage(img, x + 0.5 - span / 2, y + 0.5 - span / 2, span, span, 0, 0, BOX, BOX);
-      canvas.dataset.x = x;
-      canvas.dataset.y = y;
-      canvas.hidden = false;
-      marker.style.left = (100 * (x + 0.5 - span / 2) / w) + "%";
-      marker.style.top = (100 * (y + 0.5 - span / 2) / h) + "%";
-      marker.style.width = (100 * span / w) + "%";
-      marker.style.height = (100 * span / h) + "%";
-      marker.hidden = false;
-    }
-  }
-  function hide(group) {
-    for (const el of group.querySelectorAll("canvas.zoom, .marker")) el.hidden = true;
-  }
-  function at(event, group) {
-    const r = event.currentTarget.getBoundingClientRect();
-    group.dataset.u = Math.min(Math.max((event.clientX - r.left) / r.width, 0), 1);
-    group.dataset.v = Math.min(Math.max((event.clientY - r.top) / r.height, 0), 1);
-  }
-  for (const img of document.querySelectorAll(".fig img.px")) {
-    const group = img.closest(".group");
-    img.addEventListener("mousemove", (e) => {
-      if (!group.classList.contains("pinned")) { at(e, group); render(group); }
-    });
-    img.addEventListener("mouseleave", () => {
-      if (!group.classList.contains("pinned")) hide(group);
-    });
-    img.addEventListener("click", (e) => {
-      if (group.classList.toggle("pinned")) { at(e, group); render(group); }
-    });
-  }
-  level.addEventListener("change", () => {
-    for (const group of document.querySelectorAll(".group")) {
-      if (group.querySelector("canvas.zoom:not([hidden])")) render(group);
-    }
-  });
-  window.addEventListener("load", () => {
-    const imgs = Array.from(document.images);
-    Promise.all(imgs.map((i) => i.decode().then(() => i.naturalWidth > 0, () => false))).then((ok) => {
-      const bad = ok.filter((x) => !x).length;
-      if (bad) console.error(bad + " of " + imgs.length + " images failed to decode");
-      document.body.dataset.ready = bad ? "failed " + bad + "/" + imgs.length : "ok " + imgs.length;
-    });
-  });
-})();
-"""
-
-_PAGE = """<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{title}</title>
-<style>{css}</style></head>
-<body>
-<h1>{title}</h1>
-<p>Device: <b>{device}</b> &middot; written {date}</p>
-<h2>Metrics</h2>
-<dl>
-{definitions}
-</dl>
-<h2>Notes</h2>
-<ul>
-{display_rules}
-{notes}
-</ul>
-<h2>Table 1</h2>
-{table}
-<h2>Plots</h2>
-{plots}
-<h2>Images</h2>
-<p><label>Zoom magnification <select id="zoom-level">
-<option value="2">2x</option><option value="4">4x</option><option value="8" selected>8x</option>
-<option value="16">16x</option><option value="32">32x</option></select></label></p>
-{groups}
-<script>{js}</script>
-</body></html>
-"""
+def _template(name: str) -> str:
+    """A file of the page template (templates/: the HTML skeleton, its CSS, the zoom's JavaScript)."""
+    return resources.files("admc.pipeline.evaluation").joinpath("templates", name).read_text(encoding="utf-8")

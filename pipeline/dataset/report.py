@@ -6,19 +6,15 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from admc.common.layout import ALBEDO, NORMAL
+from admc.common.metrics import reinhard, to_ldr
 from admc.model import transforms as tf
 from admc.stores import patches
 
 
-def tonemap(linear: np.ndarray) -> np.ndarray:
-    """Reinhard then gamma 2.2 to 8 bit: enough to eyeball HDR patches side by side."""
-    x = np.nan_to_num(np.maximum(linear, 0.0))
-    return (np.clip((x / (1.0 + x)) ** (1 / 2.2), 0, 1) * 255 + 0.5).astype(np.uint8)
-
-
 def _linear(row: dict, specular: dict | None) -> tuple[np.ndarray, np.ndarray]:
     """Noisy and reference radiance (HWC) of one stored row, through the exact inverse transforms."""
-    albedo = row["features"][4:7].transpose(1, 2, 0)
+    albedo = row["features"][ALBEDO].transpose(1, 2, 0)
     noisy = tf.diffuse_inverse(row["noisy"].transpose(1, 2, 0), albedo)
     ref = tf.diffuse_inverse(row["reference"].transpose(1, 2, 0), albedo)
     if specular is not None:
@@ -40,10 +36,10 @@ def contact_sheet(store: Path, out_png: Path, split: str = "train", rows: int = 
         row = diffuse[i]
         j = spec_index.get(diffuse.locate(i))
         noisy, ref = _linear(row, specular[j] if j is not None else None)
-        albedo = (np.clip(row["features"][4:7], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
-        normal = (np.clip(row["features"][0:3], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
+        albedo = (np.clip(row["features"][ALBEDO], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
+        normal = (np.clip(row["features"][NORMAL], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
         gap = np.full((noisy.shape[0], 4, 3), 255, np.uint8)
-        lines.append(np.concatenate([tonemap(noisy), gap, tonemap(ref), gap, albedo, gap, normal], axis=1))
+        lines.append(np.concatenate([to_ldr(reinhard(noisy)), gap, to_ldr(reinhard(ref)), gap, albedo, gap, normal], axis=1))
         lines.append(np.full((4, lines[-1].shape[1], 3), 255, np.uint8))
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(lines[:-1], axis=0)).save(out_png)

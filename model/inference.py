@@ -19,6 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from admc.common.diff import differing_keys
+
 from .generator import Generator, build_generator
 from .precision import autocast_for, memory_format_for, resolve_precision
 from .transforms import (
@@ -139,7 +141,7 @@ class FullImageDenoiser:
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables).
-    Implements pipeline.denoisers.Denoiser (name, device, denoise, synchronize).
+    Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
@@ -282,7 +284,7 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
 
     nets, model, transform = read_networks(path)
     if transform != transform_spec():
-        changed = sorted(k for k in set(transform) | set(transform_spec()) if transform.get(k) != transform_spec().get(k))
+        changed = differing_keys(transform, transform_spec())
         raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")

@@ -1,8 +1,12 @@
-"""Image quality metrics of the evaluation, each defined once (the report prints these docstrings).
+"""Image quality metrics, each defined once (the report prints these docstrings), and the tone map.
 
 All metrics compare a result `x` with a reference `ref`, both (H, W, 3) linear HDR radiance.
 Non-finite values are replaced by 0 first (NONFINITE_RULE), so a denoiser that emits them is scored
 (badly) instead of crashing the evaluation or vanishing from it.
+
+The evaluation scores NumPy images; training's validation scores batches of tensors. `relmse_torch`
+and `psnr_torch` are the same definitions per sample of an (N, C, H, W) batch, side by side with the
+NumPy ones so they cannot drift apart (tests/test_metrics.py compares them).
 """
 from __future__ import annotations
 
@@ -11,7 +15,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from scipy.ndimage import correlate1d
+from torch import Tensor
 
 RELMSE_EPS = 1e-2
 GAMMA = 2.2
@@ -73,6 +79,12 @@ def to_ldr(x: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(x, 0.0, 1.0) * LDR_RANGE).astype(np.uint8)
 
 
+def reinhard(x: np.ndarray) -> np.ndarray:
+    """x / (1 + x) on max(x, 0): compresses HDR highlights before to_ldr, to eyeball patches side by side."""
+    x = np.maximum(finite(x), 0.0)
+    return x / (1.0 + x)
+
+
 def psnr(x: np.ndarray, ref: np.ndarray) -> float:
     """PSNR = 10 log10(255^2 / MSE) in dB on the 8-bit images to_ldr(x), to_ldr(ref), MSE over all
     pixels and channels; capped at 100 dB (identical images would give +inf). Higher is better.
@@ -125,6 +137,29 @@ def ssim(x: np.ndarray, ref: np.ndarray) -> float:
 def one_minus_ssim(x: np.ndarray, ref: np.ndarray) -> float:
     """1 - ssim(x, ref): the paper's SSIM column, oriented so that lower is better like relMSE."""
     return 1.0 - ssim(x, ref)
+
+
+def _finite_torch(x: Tensor) -> Tensor:
+    return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def to_ldr_torch(x: Tensor) -> Tensor:
+    """to_ldr of a tensor, as float values 0..255 (same rounding: half to even)."""
+    x = _finite_torch(x).clamp(min=0) ** (1.0 / GAMMA)
+    return torch.round(LDR_RANGE * torch.clamp(x, 0, 1))
+
+
+def relmse_torch(x: Tensor, ref: Tensor) -> Tensor:
+    """relmse of each sample of (N, C, H, W) linear images."""
+    x, ref = _finite_torch(x), _finite_torch(ref)
+    return ((x - ref) ** 2 / (ref ** 2 + RELMSE_EPS)).flatten(1).mean(1)
+
+
+def psnr_torch(x: Tensor, ref: Tensor) -> Tensor:
+    """psnr of each sample of (N, C, H, W) linear images, capped at PSNR_CAP_DB."""
+    mse = ((to_ldr_torch(x) - to_ldr_torch(ref)) ** 2).flatten(1).mean(1)
+    db = 10 * torch.log10(LDR_RANGE ** 2 / mse.clamp(min=1e-30))
+    return torch.where(mse == 0, torch.full_like(db, PSNR_CAP_DB), db.clamp(max=PSNR_CAP_DB))
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.model import transforms as tf
-from admc.pipeline.render import EXR_NAME
+from admc.pipeline.render.stage import EXR_NAME
 from admc.stores import exr, patches
 
 SPLITS = patches.SPLITS

@@ -1,0 +1,14 @@
+"""Names every layer agrees on: the branches, the feature channels as named slices, the float16 limit."""
+from __future__ import annotations
+
+BRANCHES = ("diffuse", "specular")
+
+FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
+"""The feature channels in the authors' order: normal(3), depth(1), albedo(3)."""
+N_FEATURES = len(FEATURE_CHANNELS)
+NORMAL = slice(0, 3)
+DEPTH = slice(3, 4)
+ALBEDO = slice(4, 7)
+
+FP16_MAX = 65504.0
+"""Largest finite float16: values beyond it would become inf when stored in half precision."""

@@ -1,0 +1,1 @@
+"""The dataset: renders tiled into the Zarr patch store (`tile`), and its summary (`report`)."""

@@ -1,0 +1,122 @@
+"""Evaluation: run every denoiser on every test image, score it, write Table 1 and error against time.
+
+Inputs are the render stage's folders (`<renders>/<scene>/spp0004.exr` + `.json`, `reference.exr`
++ `.json`; see inputs.py). Each noisy EXR and each reference is read once; every denoiser is timed on
+it (`time_denoiser`), scored with `metrics.METRICS` against the reference into an ImageRecord, and its
+image is saved under `out_dir/images/` so the report can show it without this process holding every
+image in memory. The raw path tracer (the noisy input, costing only its render time) is scored
+alongside as the curve the denoisers must beat at equal time. The files are written by outputs.py.
+"""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from admc.common.metrics import count_nonfinite, score
+from admc.pipeline.evaluation.baselines import Denoiser, noisy_color, time_denoiser
+from admc.pipeline.evaluation.inputs import by_scene, read_reference
+from admc.pipeline.evaluation.outputs import write_outputs
+from admc.pipeline.evaluation.records import (PATH_TRACER, EvalError, EvalResult, ImageRecord, SceneImages,
+                                              TestImage, aggregate)
+from admc.stores.atomic import publishing
+from admc.stores.exr import read_exr
+
+RESERVED_NAMES = frozenset({PATH_TRACER, "input", "reference"})
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
+
+
+def _check_denoisers(denoisers: list[Denoiser]) -> None:
+    if not denoisers:
+        raise EvalError("no denoisers to evaluate")
+    names = [d.name for d in denoisers]
+    for name in names:
+        if name in RESERVED_NAMES or not NAME_PATTERN.fullmatch(name):
+            raise EvalError(f"denoiser name {name!r} is reserved or not a plain file name "
+                            f"(letters, digits, . _ + -; not {', '.join(sorted(RESERVED_NAMES))})")
+    if len(set(names)) != len(names):
+        raise EvalError(f"denoiser names must be unique, got {names}")
+
+
+def _save(path: Path, image: np.ndarray) -> Path:
+    with publishing(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(image, dtype=np.float32))
+    return path
+
+
+def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
+             repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None) -> EvalResult:
+    """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and files.
+
+    `not_run` names methods the caller left out and why; the tables state it so a reader of the
+    report does not mistake a missing column for a forgotten one."""
+    _check_denoisers(denoisers)
+    grouped = by_scene(images)
+    out_dir = Path(out_dir)
+    records, path_tracer, scenes = [], [], []
+    with _ProgressBar(sum(len(g) for g in grouped.values()) * len(denoisers), progress) as (bar, task):
+        for scene_id, group in grouped.items():
+            folder = out_dir / "images" / scene_id
+            reference, floor = read_reference(group[0].reference_path)
+            scene = SceneImages(scene_id, _save(folder / "reference.npy", reference))
+            for test in sorted(group, key=lambda t: t.spp):
+                layers = read_exr(test.noisy_path)
+                noisy = noisy_color(layers)
+                if noisy.shape != reference.shape:
+                    raise EvalError(f"{test.noisy_path}: image is {noisy.shape[:2]}, its reference "
+                                    f"{test.reference_path} is {reference.shape[:2]}")
+                scene.inputs[test.spp] = _save(folder / f"spp{test.spp:04d}_input.npy", noisy)
+                path_tracer.append(_record(test, PATH_TRACER, "render (see sidecars)", noisy, reference, 0.0,
+                                           scene.inputs[test.spp], floor))
+                for denoiser in denoisers:
+                    bar.update(task, description=f"{denoiser.name} on {scene_id} @ {test.spp} spp")
+                    image, seconds = time_denoiser(denoiser, layers, repeats=repeats, warmup=warmup)
+                    saved = _save(folder / f"spp{test.spp:04d}_{denoiser.name}.npy", image)
+                    scene.outputs.setdefault(test.spp, {})[denoiser.name] = saved
+                    records.append(_record(test, denoiser.name, denoiser.device, image, reference, seconds, saved,
+                                           floor))
+                    bar.advance(task)
+            scenes.append(scene)
+    devices = {d.name: d.device for d in denoisers}
+    table = aggregate(records, devices)
+    sources = {d.name: d.source for d in denoisers if getattr(d, "source", None)}
+    result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}),
+                        _reference_cost(images), sources)
+    result.files = write_outputs(result, out_dir, repeats, warmup)
+    return result
+
+
+def _reference_cost(images: list[TestImage]) -> dict | None:
+    """Mean render time of the scenes' references, the far end of the raw path tracer's curve."""
+    per_scene = {t.scene_id: t for t in images}
+    if not per_scene or any(not math.isfinite(t.reference_seconds) for t in per_scene.values()):
+        return None
+    return {"spp": sorted({t.reference_spp for t in per_scene.values()}),
+            "seconds": float(np.mean([t.reference_seconds for t in per_scene.values()]))}
+
+
+def _record(test: TestImage, method: str, device: str, image: np.ndarray, reference: np.ndarray,
+            seconds: float, saved: Path, floor: float) -> ImageRecord:
+    return ImageRecord(test.scene_id, test.spp, method, device, **score(image, reference),
+                       nonfinite=count_nonfinite(image), render_seconds=test.render_seconds,
+                       denoise_seconds=seconds, image=saved, reference_floor=floor)
+
+
+class _ProgressBar:
+    """A rich progress bar on stderr, or nothing."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), disable=not enabled)
+        self.task = self.progress.add_task("evaluating", total=total)
+
+    def __enter__(self):
+        self.progress.start()
+        return self.progress, self.task
+
+    def __exit__(self, *exc) -> None:
+        self.progress.stop()

@@ -1,0 +1,155 @@
+"""Reading the patch store: training rows of a split and branch, and the store's summary."""
+from __future__ import annotations
+
+import bisect
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.storage import LocalStore
+
+from admc.common.diff import differing_keys
+from admc.common.layout import BRANCHES
+from admc.stores.patches.format import (CROP_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
+                                        _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
+                                        list_scenes)
+
+
+class PatchReader:
+    """Random access to one split's patch rows, as float32 arrays ready for training.
+
+    Row i of the "diffuse" branch pairs noisy_diffuse, features and the row's reference crop;
+    the "specular" branch indexes only scenes that have specular arrays. Index arrays are loaded
+    once per scene; each item then reads exactly one chunk of each image array. Picklable (for
+    DataLoader workers): array handles are reopened lazily in each process.
+    """
+
+    def __init__(self, path: str | os.PathLike, split: str, expect_transform: dict | None = None,
+                 branch: str = "diffuse"):
+        _check_split(split)
+        if branch not in BRANCHES:
+            raise PatchStoreError(f"branch {branch!r}: must be one of {BRANCHES}")
+        self.path = Path(path)
+        self.split = split
+        self.branch = branch
+        root = _open_root(self.path)
+        self.attrs = dict(root.attrs)
+        if expect_transform is not None:
+            want = _jsonable(expect_transform, "expect_transform")
+            diff = differing_keys(self.attrs.get("transform"), want)
+            if diff:
+                have = {"transform": self.attrs.get("transform")}
+                raise PatchStoreError(
+                    f"{self.path}: transform spec differs from the model's in {', '.join(diff)} "
+                    f"(e.g. {diff[0]}: store has {_lookup(have, 'transform.' + diff[0])!r}, "
+                    f"model expects {_lookup({'t': want}, 't.' + diff[0])!r})")
+        self.scenes: list[str] = []
+        self._spp: list[np.ndarray] = []
+        self._crop: list[np.ndarray] = []
+        self._starts: list[int] = []
+        total = 0
+        for scene in list_scenes(self.path, split):
+            with _reading(self.path, split, scene, "zarr.json"):
+                group = root[f"{split}/{scene}"]
+                if branch == "specular" and not group.attrs["has_specular"]:
+                    continue
+            self.scenes.append(scene)
+            for name, out in (("spp", self._spp), ("crop", self._crop)):
+                with _reading(self.path, split, scene, name):
+                    out.append(group[name][...])
+            self._starts.append(total)
+            total += len(self._spp[-1])
+        self._len = total
+        self._root: zarr.Group | None = None
+        self._arrays: dict[str, zarr.Array] = {}
+
+    def __len__(self) -> int:
+        return self._len
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_root": None, "_arrays": {}}
+
+    def _array(self, scene: str, name: str) -> zarr.Array:
+        key = f"{self.split}/{scene}/{name}"
+        if key not in self._arrays:
+            if self._root is None:
+                self._root = zarr.open_group(store=LocalStore(self.path, read_only=True), mode="r")
+            self._arrays[key] = self._root[key]
+        return self._arrays[key]
+
+    def locate(self, i: int) -> tuple[str, int]:
+        """(scene, row within the scene) of global row i."""
+        k, row = self._locate(i)
+        return self.scenes[k], row
+
+    def _locate(self, i: int) -> tuple[int, int]:
+        if not -self._len <= i < self._len:
+            raise IndexError(f"row {i} out of range for {self._len} rows in {self.path}/{self.split}")
+        i %= self._len
+        k = bisect.bisect_right(self._starts, i) - 1
+        return k, i - self._starts[k]
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        k, row = self._locate(i)
+        scene = self.scenes[k]
+        crop = int(self._crop[k][row])
+        return {
+            "noisy": self._patch(scene, f"noisy_{self.branch}", row),
+            "features": self._patch(scene, "features", row),
+            "reference": self._patch(scene, f"ref_{self.branch}", crop),
+            "spp": int(self._spp[k][row]),
+            "scene": scene,
+        }
+
+    def _patch(self, scene: str, name: str, index: int) -> np.ndarray:
+        with _reading(self.path, self.split, scene, name):
+            return self._array(scene, name)[index].astype(np.float32)
+
+
+def _add_counts(total: dict, counts: Any) -> None:
+    """Sum nested {buffer: {kind: count}} dictionaries."""
+    for key, value in counts.items():
+        if isinstance(value, dict):
+            _add_counts(total.setdefault(key, {}), value)
+        elif isinstance(value, (int, float)):
+            total[key] = total.get(key, 0) + value
+
+
+def store_summary(path: str | os.PathLike) -> dict:
+    """Counts per split, spp level and branch; value ranges per array; sanitisation totals.
+
+    Reads every patch once (for the ranges): meant for reports, not for the training loop.
+    """
+    path = Path(path)
+    root = _open_root(path)
+    summary: dict[str, Any] = {"format_version": root.attrs["format_version"], "splits": {},
+                               "sanitization": {}, "staging_leftovers": 0}
+    staging = path / STAGING
+    summary["staging_leftovers"] = sum(1 for p in staging.iterdir() if p.is_dir()) if staging.is_dir() else 0
+    for split in SPLITS:
+        entry: dict[str, Any] = {"scenes": [], "rows": {b: 0 for b in BRANCHES}, "crops": 0,
+                                 "rows_per_spp": {}, "ranges": {}}
+        for scene in list_scenes(path, split):
+            damaged = damaged_arrays(path, split, scene)
+            if damaged:
+                raise _damage_error(path, split, scene, damaged, "its files differ from the checksums written with it")
+            group = root[f"{split}/{scene}"]
+            entry["scenes"].append(scene)
+            n = int(group.attrs["n_rows"])
+            entry["rows"]["diffuse"] += n
+            entry["rows"]["specular"] += n if group.attrs["has_specular"] else 0
+            entry["crops"] += int(group.attrs["n_crops"])
+            for spp, count in zip(*np.unique(group["spp"][...], return_counts=True)):
+                entry["rows_per_spp"][int(spp)] = entry["rows_per_spp"].get(int(spp), 0) + int(count)
+            for name in (*ROW_IMAGES, *CROP_IMAGES):
+                if name in group:
+                    with _reading(path, split, scene, name):
+                        values = group[name][...]
+                    lo, hi = float(values.min()), float(values.max())
+                    old = entry["ranges"].get(name, (lo, hi))
+                    entry["ranges"][name] = (min(old[0], lo), max(old[1], hi))
+            _add_counts(summary["sanitization"], dict(group.attrs["sanitization"]))
+        summary["splits"][split] = entry
+    return summary
