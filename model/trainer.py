@@ -15,19 +15,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import random
-import sys
-import time
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from admc.errors import AdmcError, DeviceError, TrainingError
-from admc.stores.checkpoints import export_weights, load_checkpoint, read_networks, save_checkpoint
+from admc.stores.checkpoints import export_weights, load_checkpoint, save_checkpoint
 from admc.stores import patches
 from admc.stores.patches import PatchReader, PatchStoreError
 
@@ -37,17 +32,15 @@ from .data import branch_seed, load_rows, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
 from .precision import precision_name
+from .progress import ProgressWindow
+from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
+                     set_rng_state)
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
 from .validation import validate
 
 CHECKPOINT_NAME = "checkpoint.pt"
 WEIGHTS_NAME = "weights-fp16.pt"
-# Settings a resumed run may change without changing what it computes.
-# precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the
-# other precision continues correctly, just not bit-identically (said in a note), as after a device change.
-RESUMABLE_CHANGES = ("steps", "val_every", "val_patches", "checkpoint_every", "log_every", "num_workers",
-                     "threads", "device", "precision", "max_bad_steps")
 log = logging.getLogger("admc.train")
 
 
@@ -88,94 +81,11 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def _rng_state() -> dict:
-    kind, keys, pos, has_gauss, cached = np.random.get_state()
-    state = {"python": random.getstate(), "torch": torch.get_rng_state(),
-             "numpy": (kind, keys.tolist(), pos, has_gauss, cached)}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _set_rng_state(state: dict) -> None:
-    random.setstate(state["python"])
-    torch.set_rng_state(state["torch"])
-    kind, keys, pos, has_gauss, cached = state["numpy"]
-    np.random.set_state((kind, np.array(keys, dtype=np.uint32), pos, has_gauss, cached))
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def _seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def _check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, model: ModelSettings, stage: str,
-                     fingerprint: str) -> None:
-    if checkpoint["stage"] != stage:
-        raise TrainingError(f"{path}: is a {checkpoint['stage']!r} checkpoint, cannot resume it as {stage!r}")
-    saved = dataclasses.asdict(ModelSettings.from_saved(checkpoint["model"]))
-    if saved != dataclasses.asdict(model):
-        diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
-        raise TrainingError(f"{path}: model settings differ from the checkpoint's in {diff}")
-    saved, now = checkpoint["settings"], dataclasses.asdict(settings)
-    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
-    if diff:
-        raise TrainingError(f"{path}: train settings {diff} differ from the checkpoint's; an exact resume allows "
-                            f"changing only {list(RESUMABLE_CHANGES)}")
-    if checkpoint["store"]["fingerprint"] != fingerprint:
-        raise TrainingError(f"{path}: the patch store changed since this checkpoint (scenes or attributes differ); "
-                            "resume needs the same data: start a 'finetune' from the checkpoint instead")
-
-
-def _say_precision_change(checkpoint: dict, precision: str, say) -> None:
-    """Note a resume in another precision than the checkpoint's steps ran in (older checkpoints do not
-    say which)."""
-    before = checkpoint.get("precision")
-    if before is not None and before != precision:
-        say(f"the checkpoint's steps ran in {before}, this run continues in {precision}: training goes on "
-            f"from the same state, but not bit-identically to an uninterrupted {before} run")
-
-
-def _load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict, str]:
-    """(branch -> {"generator", "critic"}, transform spec, description) from a checkpoint or fp16 weights."""
-    if init_from is None:
-        raise TrainingError("stage 'finetune' needs init_from (a checkpoint or exported weights)")
-    init_from = Path(init_from)
-    nets, saved_model, transform = read_networks(init_from)
-    saved = dataclasses.asdict(ModelSettings.from_saved(saved_model))
-    if saved != dataclasses.asdict(model):
-        diff = [k for k, v in dataclasses.asdict(model).items() if saved[k] != v]
-        raise TrainingError(f"{init_from}: its model settings differ from the configured ones in {diff}")
-    return nets, transform, str(init_from)
-
-
 def _open_reader(store: Path, split: str, transform: dict, branch: str, source: str) -> PatchReader:
     try:
         return PatchReader(store, split, expect_transform=transform, branch=branch)
     except PatchStoreError as exc:
         raise PatchStoreError(f"refused for {source}: {exc}") from None
-
-
-class _Averages:
-    """Running means of the logged losses since the last log line."""
-
-    def __init__(self) -> None:
-        self.sums: dict[str, float] = defaultdict(float)
-        self.counts: dict[str, int] = defaultdict(int)
-
-    def add(self, prefix: str, values: dict[str, float]) -> None:
-        for k, v in values.items():
-            self.sums[f"{prefix}/{k}"] += v
-            self.counts[f"{prefix}/{k}"] += 1
-
-    def pop(self) -> dict[str, float]:
-        out = {k: self.sums[k] / self.counts[k] for k in self.sums}
-        self.sums.clear()
-        self.counts.clear()
-        return out
 
 
 def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, model: ModelSettings,
@@ -193,11 +103,11 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     checkpoint, init_nets, transform, source = _starting_point(run, resume)
     readers = _open_train(run, transform, source)
     if resume:
-        _check_resumable(checkpoint, run.checkpoint_path, settings, model, stage, run.fingerprint)
+        check_resumable(checkpoint, run.checkpoint_path, settings, model, stage, run.fingerprint)
     run.transform = transform
     run.patch_size = int(next(iter(readers.values())).attrs["patch_size"])
     val = _load_val(run, readers, transform, source)
-    _seed_everything(settings.seed)
+    seed_everything(settings.seed)
     run.trainers = {b: BranchTrainer(b, model, settings, run.patch_size, run.device) for b in readers}
     run.precision = precision_name(next(iter(run.trainers.values())).dtype)
     start = _restore(run, checkpoint, init_nets)
@@ -267,7 +177,7 @@ class _Run:
                 "store": {"path": str(self.store), "fingerprint": self.fingerprint, "patch_size": self.patch_size},
                 "init_from": str(self.init_from) if self.init_from is not None else None,
                 "branches": {b: t.state_dict() for b, t in self.trainers.items()},
-                "best": self.best.state_dict(), "rng": _rng_state()}
+                "best": self.best.state_dict(), "rng": rng_state()}
 
 
 def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, dict, str]:
@@ -280,7 +190,7 @@ def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, 
         raise TrainingError(f"{run.checkpoint_path} exists: pass resume=True to continue that run, "
                             "or use another out_dir")
     if run.stage == "finetune":
-        init_nets, transform, source = _load_init(run.init_from, run.model)
+        init_nets, transform, source = load_init(run.init_from, run.model)
         return None, init_nets, transform, f"init weights {source}"
     if run.init_from is not None:
         raise TrainingError("init_from: only stage 'finetune' starts from existing weights")
@@ -328,11 +238,11 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
             if b not in checkpoint["branches"]:
                 raise TrainingError(f"{run.checkpoint_path}: has no {b} branch but the store and settings train it")
             trainer.load_state_dict(checkpoint["branches"][b], str(run.checkpoint_path))
-        _set_rng_state(checkpoint["rng"])
+        set_rng_state(checkpoint["rng"])
         run.best.load_state_dict(checkpoint.get("best", {}))
         start = int(checkpoint["step"])
         run.say(f"resuming {run.stage} from {run.checkpoint_path} at step {start}")
-        _say_precision_change(checkpoint, run.precision, run.say)
+        say_precision_change(checkpoint, run.precision, run.say)
         return start
     if init_nets is not None:
         for b, trainer in run.trainers.items():
@@ -362,7 +272,7 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
         run.metrics = MetricsLog(run.out_dir, resume_step=start if resume else None)
     else:
         val = {}  # rank 0 validates (the others wait for it in the next step's all-reduce)
-    window = _Window(run, start)
+    window = ProgressWindow(run, start)
     last_saved = start if resume else None
     try:
         if start == 0 and settings.val_every:
@@ -408,42 +318,6 @@ def _bad_step(run: _Run, branch: str, trainer: BranchTrainer, step: int, last_sa
             f"checkpoint: {run.checkpoint_path} ({kept})")
 
 
-class _Window:
-    """Progress and the logged averages over the steps since the last log line.
-
-    A live bar only on a terminal; in a log file or CI output its carriage-return redraws are noise,
-    so there the logged averages go out as one plain line every log_every steps instead."""
-
-    def __init__(self, run: _Run, start: int):
-        self.run = run
-        self.live = run.progress and sys.stderr.isatty()
-        self.bar = tqdm(total=run.settings.steps, initial=start, disable=not self.live, desc=run.stage,
-                        dynamic_ncols=True)
-        self.averages = _Averages()
-        self.start, self.patches = time.perf_counter(), 0
-
-    def step_done(self, done: int) -> None:
-        run, settings = self.run, self.run.settings
-        self.bar.update(1)
-        if not run.ranks.lead or (done % settings.log_every and done != settings.steps):
-            return
-        values = self.averages.pop()
-        values["patches_per_s"] = self.patches / max(time.perf_counter() - self.start, 1e-9)
-        for b, trainer in run.trainers.items():
-            values.update({f"{b}/{k}": v for k, v in trainer.learning_rates().items()})
-            values[f"{b}/bad_steps"] = trainer.bad_total
-        values["phase"] = ("l1", "critic", "adversarial").index(settings.phase(done - 1))
-        run.metrics.log(done, values)
-        self.bar.set_postfix(_postfix(values), refresh=False)
-        if run.progress and not self.live:
-            line = " ".join(f"{k}={v}" for k, v in _postfix(values).items())
-            print(f"{run.stage} step {done}/{settings.steps}: {line}", file=sys.stderr, flush=True)
-        self.start, self.patches = time.perf_counter(), 0
-
-    def close(self) -> None:
-        self.bar.close()
-
-
 def _finish(run: _Run, start: int) -> TrainResult:
     """Write the shipped weights (each branch's best validated networks) and say which they are."""
     last_step = max(start, run.settings.steps)
@@ -462,14 +336,3 @@ def _finish(run: _Run, start: int) -> TrainResult:
                        step=last_step, branches=list(trainers), skipped_branches=run.skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=run.last_losses,
                        validation=run.validation, notes=run.notes, selected=selected, rank=run.ranks.rank)
-
-
-def _postfix(values: dict[str, float]) -> dict[str, str]:
-    short = {"l1": "l1", "wasserstein": "W", "gp": "gp"}
-    out = {}
-    for tag, value in values.items():
-        branch, _, key = tag.partition("/")
-        if key in short:
-            out[f"{branch[0]}.{short[key]}"] = f"{value:.3g}"
-    out["p/s"] = f"{values['patches_per_s']:.1f}"
-    return out
