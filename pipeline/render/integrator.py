@@ -55,7 +55,9 @@ def _mis_weight(pdf_a, pdf_b):
 
 @functools.cache
 def _integrator_class(variant: str) -> type:
-    """Build the integrator class for the active variant (mi.SamplingIntegrator is per variant)."""
+    """Build the integrator class for the active variant (mi.SamplingIntegrator is per variant).
+
+    Long on purpose: the class must be defined after the variant is set, so its methods live in here."""
     class AdmcSplitIntegrator(mi.SamplingIntegrator):
         """Path tracer with KPCN diffuse/specular split, features and second moments as AOVs."""
 
@@ -80,6 +82,8 @@ def _integrator_class(variant: str) -> type:
 
         @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
+            # Long on purpose, like Mitsuba's own path tracer: @dr.syntax turns the while loop below into a
+            # Dr.Jit loop whose state is every local the body changes; helpers would pass it all in and out.
             split = self.split
             bsdf_ctx = mi.BSDFContext()
             diffuse_ctx = mi.BSDFContext()
