@@ -49,8 +49,11 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
               if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
     if cfg.eval.split == "test":
         families = list(cfg.eval.test_families)
-        chosen += scenes.procedural_corpus(families, cfg.eval.test_scenes_per_family * len(families),
-                                           cfg.eval.test_seed, cfg.render.resolution)
+        try:
+            chosen += scenes.procedural_corpus(families, cfg.eval.test_scenes_per_family * len(families),
+                                               cfg.eval.test_seed, cfg.render.resolution)
+        except scenes.SceneError as exc:
+            raise EvalStageError(f"config key 'eval.test_families': {exc}") from None
     return chosen
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from admc.pipeline.render import stage as render
 from admc.pipeline.config import ConfigError, load_config
-from admc.pipeline.eval_stage import eval_scenes
+from admc.pipeline.eval_stage import EvalStageError, eval_scenes
 from admc.pipeline.render.scenes import analyse, load_scene, scene_hash
 
 PRETRAIN = Path(__file__).resolve().parents[1] / "configs" / "pretrain.toml"
@@ -39,3 +39,8 @@ def test_a_test_seed_equal_to_the_corpus_seed_is_refused():
     with pytest.raises(ConfigError, match=r"eval.test_seed.*equals corpus.seed \(0\).*training scenes"):
         load_config(None, ["eval.test_seed=0"])
     assert load_config(None, ["eval.test_seed=0", "eval.test_scenes_per_family=0"]).eval.test_seed == 0
+
+
+def test_an_unknown_test_family_is_named_with_its_key():
+    with pytest.raises(EvalStageError, match=r"config key 'eval.test_families': unknown procedural families \['moon'\]"):
+        eval_scenes(load_config(None, ["eval.test_families=['moon']"]))
