@@ -205,7 +205,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             check_output_path(target, source)
             if model is None:  # after the first input checks out
                 model = load_model(cfg, weights, device, tile)
-                console.print(f"weights: {model.source}")
+                console.print(f"weights: {model.source} ({model.name})", markup=False)
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
             if len(inputs) == 1:

@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from admc.stores.checkpoints import load_network
 
 from .critic import Critic
+from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
 from .generator import build_generator
 from .losses import critic_loss, generator_loss
@@ -81,11 +82,11 @@ class BranchTrainer:
 
     def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         return {k: batch[k].to(self.device, non_blocking=True, memory_format=self.memory_format)
-                for k in ("noisy", "features", "reference")}
+                for k in IMAGE_KEYS if k in batch}
 
     def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:
         with torch.no_grad(), autocast_for(self.device, self.dtype):
-            fake = self.generator(batch["noisy"], batch["features"])
+            fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
         opt = self.optimizers["critic"]
         opt.zero_grad(set_to_none=True)
         with autocast_for(self.device, self.dtype):
@@ -107,7 +108,7 @@ class BranchTrainer:
             opt.zero_grad(set_to_none=True)
         s = self.settings
         with _frozen(self.critic), autocast_for(self.device, self.dtype):
-            fake = self.generator(batch["noisy"], batch["features"])
+            fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
                                          adversarial)

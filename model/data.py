@@ -52,8 +52,13 @@ def augment(image: np.ndarray, code: int, normals: bool = False) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
+IMAGE_KEYS = ("noisy", "features", "reference", "base")
+"""The image entries of an item or batch ("base" only from a reader opened with base=True)."""
+
+
 class PatchDataset(Dataset):
-    """Items are (row, augmentation code) pairs -> {"noisy", "features", "reference"} float32 tensors.
+    """Items are (row, augmentation code) pairs -> {"noisy", "features", "reference"[, "base"]} float32
+    tensors, every image under the same symmetry.
 
     The PatchReader pickles without open zarr handles, so each DataLoader worker opens its own.
     """
@@ -67,11 +72,8 @@ class PatchDataset(Dataset):
     def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
         row, code = key
         item = self.reader[row]
-        return {
-            "noisy": torch.from_numpy(augment(item["noisy"], code)),
-            "features": torch.from_numpy(augment(item["features"], code, normals=True)),
-            "reference": torch.from_numpy(augment(item["reference"], code)),
-        }
+        return {name: torch.from_numpy(augment(item[name], code, normals=name == "features"))
+                for name in IMAGE_KEYS if name in item}
 
 
 class BatchStream:
@@ -142,5 +144,4 @@ def load_rows(reader: PatchReader, n: int) -> dict[str, torch.Tensor]:
     if count == 0:
         raise ValueError(f"{reader.path}: split {reader.split!r} has no {reader.branch} patches")
     items = [reader[i] for i in range(count)]
-    return {key: torch.from_numpy(np.stack([item[key] for item in items]))
-            for key in ("noisy", "features", "reference")}
+    return {key: torch.from_numpy(np.stack([item[key] for item in items])) for key in IMAGE_KEYS if key in items[0]}

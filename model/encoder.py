@@ -1,5 +1,8 @@
 """EncoderNet: turns the 7 auxiliary feature channels into the 32-channel condition map.
 
+A refiner of OIDN's output (model.base = "oidn") also feeds the noisy radiance (3 more channels) to its
+encoder: the image path carries OIDN's estimate, the condition tells it what OIDN discarded.
+
 One encoder per branch is shared by every CFM layer of that branch, so the features are encoded
 once per forward pass rather than once per layer. It runs at full resolution (no striding):
 CFM modulates per pixel, so the condition must stay aligned with the image.
@@ -22,12 +25,12 @@ def conv3x3(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
 
 
 class EncoderNet(nn.Module):
-    """conv3x3 7->hidden, LReLU(0.1), 3 x [conv1x1 hidden->hidden, LReLU(0.1)], conv1x1 hidden->out."""
+    """conv3x3 in->hidden, LReLU(0.1), 3 x [conv1x1 hidden->hidden, LReLU(0.1)], conv1x1 hidden->out."""
 
-    def __init__(self, hidden_channels: int = 128, out_channels: int = 32) -> None:
+    def __init__(self, hidden_channels: int = 128, out_channels: int = 32, in_channels: int = N_FEATURES) -> None:
         super().__init__()
         layers: list[nn.Module] = [
-            conv3x3(N_FEATURES, hidden_channels),
+            conv3x3(in_channels, hidden_channels),
             nn.LeakyReLU(0.1, inplace=True),
         ]
         for _ in range(3):

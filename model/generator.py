@@ -3,7 +3,8 @@
 Architecture as in the authors' code (SFTGAN-style): a head conv, a body of residual blocks whose
 convs are preceded by conditioned feature modulation (CFM) driven by a shared EncoderNet, a global
 skip from the head over the body, and a tail ending in ReLU (targets are log1p radiance, >= 0).
-The `mode` switch builds the paper's ablations (Fig. 12) from the same code.
+The `mode` switch builds the paper's ablations (Fig. 12) from the same code; `base = "oidn"` builds the
+admc+oidn refiner, which corrects OIDN's output instead of denoising the noisy input.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from admc.common.layout import N_FEATURES
+from admc.common.layout import BASES, N_FEATURES
 
 from .encoder import EncoderNet, conv3x3
 
@@ -39,10 +40,16 @@ class GeneratorConfig:
     input_skip: bool = False  # admc option: out = ReLU(noisy + tail), so training starts at the identity
     backbone: str = "residual"
     levels: int = 3           # unet: times the resolution is halved (blocks then run at 1/2^levels)
+    base: str = "noisy"       # "oidn": out = ReLU(OIDN + tail), the tail's last conv starting at 0 (see Generator)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"GeneratorConfig.mode: {self.mode!r} is not one of {MODES}")
+        if self.base not in BASES:
+            raise ValueError(f"GeneratorConfig.base: {self.base!r} is not one of {BASES}")
+        if self.refines and self.mode not in MODULATED_MODES:
+            raise ValueError(f"GeneratorConfig.base 'oidn' needs a modulated mode {MODULATED_MODES} (the noisy "
+                             f"radiance reaches a refiner through its EncoderNet), got mode {self.mode!r}")
         if self.backbone not in BACKBONES:
             raise ValueError(f"GeneratorConfig.backbone: {self.backbone!r} is not one of {BACKBONES}")
         for name in ("channels", "blocks", "cond_channels", "encoder_channels", "levels"):
@@ -53,6 +60,11 @@ class GeneratorConfig:
     @property
     def modulated(self) -> bool:
         return self.mode in MODULATED_MODES
+
+    @property
+    def refines(self) -> bool:
+        """Whether the generator corrects OIDN's output (given as `base`) rather than the noisy input."""
+        return self.base == "oidn"
 
 
 def _condition_net(cond_channels: int, channels: int) -> nn.Sequential:
@@ -141,6 +153,13 @@ class Generator(nn.Module):
     authors' network has no skip from the input to the output; `input_skip` adds one (see
     GeneratorConfig). This class is the paper's full-resolution body; `build_generator` picks the
     backbone a config names.
+
+    A refiner (`config.base = "oidn"`) is called as `forward(noisy, features, base)`: the head sees the
+    base (OIDN's output, same log domain as noisy), the EncoderNet sees features + noisy, and the tail's
+    last conv starts at zero, so an untrained refiner returns the base exactly. That conv learns in the
+    body group from the first step: held back with the head and tail until head_tail_start_step, it
+    would block every gradient before it. (A zero gain on a small correction instead sat at the
+    saddle where both are small: after 1500 pretraining steps the refiner still equalled OIDN.)
     """
 
     alignment = 1
@@ -151,7 +170,9 @@ class Generator(nn.Module):
         self.config = config
         c = config.channels
         in_channels = COLOR_CHANNELS + N_FEATURES if config.mode == "concat" else COLOR_CHANNELS
-        self.encoder = EncoderNet(config.encoder_channels, config.cond_channels) if config.modulated else None
+        encoder_in = N_FEATURES + COLOR_CHANNELS if config.refines else N_FEATURES
+        self.encoder = (EncoderNet(config.encoder_channels, config.cond_channels, encoder_in)
+                        if config.modulated else None)
         self.head = conv3x3(in_channels, c)
         self._build_body()
         self.tail = nn.Sequential(
@@ -161,6 +182,9 @@ class Generator(nn.Module):
             nn.ReLU(inplace=True),
         )
         scaled_kaiming_(self, 0.1)
+        if config.refines:
+            nn.init.zeros_(self.tail[-2].weight)
+            nn.init.zeros_(self.tail[-2].bias)
         self.gate_radius = self.receptive_radius()
 
     def _build_body(self) -> None:
@@ -194,14 +218,22 @@ class Generator(nn.Module):
         """Split for the authors' optimiser: the conditioned body and encoder ("body", 5x LR) and
         the head and tail ("head_tail", base LR, frozen early in training)."""
         outer = {id(p) for m in (self.head, self.tail) for p in m.parameters()}
+        if self.config.refines:
+            outer -= {id(p) for p in self.tail[-2].parameters()}
         return {
             "body": [p for p in self.parameters() if id(p) not in outer],
             "head_tail": [p for p in self.parameters() if id(p) in outer],
         }
 
-    def _check_inputs(self, noisy: Tensor, features: Tensor | None) -> None:
+    def _check_inputs(self, noisy: Tensor, features: Tensor | None, base: Tensor | None) -> None:
         if noisy.ndim != 4 or noisy.shape[1] != COLOR_CHANNELS:
             raise ValueError(f"Generator: noisy must be (N, {COLOR_CHANNELS}, H, W), got {tuple(noisy.shape)}")
+        if self.config.refines != (base is not None):
+            raise ValueError(f"Generator (base {self.config.base!r}): "
+                             + ("the base image (OIDN's output) is required" if self.config.refines
+                                else "takes no base image"))
+        if base is not None and base.shape != noisy.shape:
+            raise ValueError(f"Generator: base must match noisy {tuple(noisy.shape)}, got {tuple(base.shape)}")
         if self.config.mode == "none":
             return
         if features is None:
@@ -210,9 +242,12 @@ class Generator(nn.Module):
         if tuple(features.shape) != expected:
             raise ValueError(f"Generator: features must be {expected} to match noisy, got {tuple(features.shape)}")
 
-    def forward(self, noisy: Tensor, features: Tensor | None = None) -> Tensor:
-        """`features` (normal, depth, albedo; 7 channels) may be omitted only in mode "none"."""
-        self._check_inputs(noisy, features)
+    def forward(self, noisy: Tensor, features: Tensor | None = None, base: Tensor | None = None) -> Tensor:
+        """`features` (normal, depth, albedo; 7 channels) may be omitted only in mode "none"; `base` is
+        given exactly when the generator refines (config.base = "oidn")."""
+        self._check_inputs(noisy, features, base)
+        if base is not None:
+            return self._refine(noisy, features, base)
         x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else noisy
         cond = self.encoder(features) if self.encoder is not None else None
         out = self._body(self.head(x), cond)
@@ -224,6 +259,13 @@ class Generator(nn.Module):
         # over a black background). Such pixels keep their input, zero: this hides no light it saw.
         out = torch.where(light_within(noisy, self.gate_radius), out, 0.0)
         return torch.relu(noisy + out) if self.config.input_skip else out
+
+    def _refine(self, noisy: Tensor, features: Tensor, base: Tensor) -> Tensor:
+        """ReLU(base + correction); the darkness gate as in `forward` (no light seen: the base)."""
+        cond = self.encoder(torch.cat([features, noisy], dim=1))
+        out = self.tail[:-1](self._body(self.head(base), cond))
+        out = torch.where(light_within(noisy, self.gate_radius), out, 0.0)
+        return torch.relu(base + out)
 
     def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
         f = head

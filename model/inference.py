@@ -8,6 +8,10 @@ tiled image equals the untiled one up to float rounding: no seams, and no blendi
 No padding is added by the denoiser: crops are taken inside the image (shifted inwards at its
 borders), so at the image border the network's own (replicate) padding applies just as in an untiled
 run and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
+
+A refiner (generators with config.base = "oidn") first runs OIDN per branch on the whole image
+(oidn_base.oidn_bases, as tiling did for its training rows), then corrects OIDN's output tile by tile:
+one call, and its time includes OIDN's.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from torch import Tensor, nn
 from admc.common.diff import differing_keys
 
 from .generator import Generator, build_generator
+from .oidn_base import oidn_bases
 from .precision import autocast_for, memory_format_for, resolve_precision
 from .transforms import (
     EPS,
@@ -78,8 +83,9 @@ def axis_windows(size: int, tile: int, halo: int, align: int = 1) -> list[tuple[
     return windows
 
 
-def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1) -> Tensor:
-    """`generator(noisy, feats)` on (1, C, H, W) tensors, tile by tile; the output is float32.
+def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
+              base: Tensor | None = None) -> Tensor:
+    """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
     With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
     untiled call up to float rounding.
@@ -88,7 +94,9 @@ def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, hal
     out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
     for y0, y1, cy0, cy1 in axis_windows(height, tile, halo, align):
         for x0, x1, cx0, cx1 in axis_windows(width, tile, halo, align):
-            crop = generator(noisy[..., cy0:cy1, cx0:cx1], feats[..., cy0:cy1, cx0:cx1])
+            window = (..., slice(cy0, cy1), slice(cx0, cx1))
+            extra = () if base is None else (base[window],)
+            crop = generator(noisy[window], feats[window], *extra)
             out[..., y0:y1, x0:x1] = crop[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
     return out
 
@@ -106,7 +114,8 @@ class DenoiseResult:
     nonfinite_outputs: int = 0           # network output values that were NaN/Inf (set to 0)
     tiles: int = 1                       # network calls per branch
     network_seconds: float = 0.0         # generator time, synchronised (both branches)
-    seconds: float = 0.0                 # whole call: sanitising, transforms, networks, inverse
+    base_seconds: float = 0.0            # OIDN's time for a refiner's bases (0 for base "noisy")
+    seconds: float = 0.0                 # whole call: sanitising, OIDN, transforms, networks, inverse
 
     @property
     def notes(self) -> list[str]:
@@ -140,7 +149,8 @@ class FullImageDenoiser:
     on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere (precision.resolve_precision).
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
-    weights file it came from (reported next to the tables).
+    weights file it came from (reported next to the tables). `base` is what the generators correct:
+    "noisy", or "oidn" for refiners (then OIDN runs first, inside the call).
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
@@ -154,6 +164,7 @@ class FullImageDenoiser:
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
         self.dtype = dtype or resolve_precision("auto", self.torch_device)
         self.memory_format = memory_format_for(self.torch_device, self.dtype)
+        self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
             self.generators["specular"] = self._prepare(specular)
@@ -193,12 +204,15 @@ class FullImageDenoiser:
         if run_specular:
             inputs["specular"] = specular_forward(clean["specular"])
         feats = self._tensor(features(clean["normal"], clean["depth"], albedo, clean["coverage"]))
+        base_start = time.perf_counter()
+        bases = self._bases(clean, albedo, tuple(inputs))
+        base_seconds = time.perf_counter() - base_start
 
         self.synchronize()
         net_start = time.perf_counter()
         outputs, nonfinite, tiles = {}, 0, 1
         for branch, log_input in inputs.items():
-            out, tiles = self._run(self.generators[branch], self._tensor(log_input), feats)
+            out, tiles = self._run(self.generators[branch], self._tensor(log_input), feats, bases.get(branch))
             nonfinite += int((~torch.isfinite(out)).sum())
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
@@ -211,7 +225,7 @@ class FullImageDenoiser:
         return DenoiseResult(
             image=image, diffuse=diffuse, specular=specular, branches=tuple(inputs),
             specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
-            nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds,
+            nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds, base_seconds=base_seconds,
             seconds=time.perf_counter() - start,
         )
 
@@ -219,9 +233,17 @@ class FullImageDenoiser:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
         return t.contiguous(memory_format=self.memory_format)
 
-    def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor) -> tuple[Tensor, int]:
+    def _bases(self, clean: dict[str, np.ndarray], albedo: np.ndarray, branches: tuple[str, ...]) -> dict[str, Tensor]:
+        """A refiner's inputs from OIDN, per branch it runs, in that branch's log domain; {} for base "noisy"."""
+        if self.base == "noisy":
+            return {}
+        linear = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)})
+        forward = {"diffuse": lambda x: diffuse_forward(x, albedo), "specular": specular_forward}
+        return {branch: self._tensor(forward[branch](linear[branch])) for branch in branches}
+
+    def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
         with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):
-            out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment)
+            out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment, base)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
 
@@ -270,9 +292,14 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
     return clean, report
 
 
+COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
+"""A learned denoiser's default column name in the tables, by the base its weights record."""
+
+
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
-                  compile: bool = False, name: str = "admc") -> FullImageDenoiser:
-    """Both branches' generators from a training checkpoint or exported weights, ready to denoise.
+                  compile: bool = False, name: str | None = None) -> FullImageDenoiser:
+    """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
+    named `name`, else after the base the file records (COLUMN_NAMES).
 
     Refuses weights trained on other transforms than this code applies (their outputs would be
     inverted wrongly); a file without a specular branch denoises diffuse only.
@@ -300,4 +327,4 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
                      "the architecture its own metadata describes")
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
-                             compile=compile, name=name, source=str(path))
+                             compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path))

@@ -80,6 +80,10 @@ def load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict,
     init_from = Path(init_from)
     nets, saved_model, transform = read_networks(init_from)
     saved = dataclasses.asdict(ModelSettings.from_saved(saved_model))
+    if saved["base"] != model.base:
+        raise TrainingError(f"{init_from}: was trained with model.base = {saved['base']!r}, this config has "
+                            f"model.base = {model.base!r}; fine-tune from weights of the same base (the shipped "
+                            "ones for either base are found automatically when --init is left out)")
     diff = differing_keys(saved, dataclasses.asdict(model))
     if diff:
         raise TrainingError(f"{init_from}: its model settings differ from the configured ones in {diff}")

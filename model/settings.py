@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from admc.common.layout import BRANCHES
+from admc.common.layout import BASES, BRANCHES
 
 from .critic import NORMS, CriticConfig
-from .generator import BACKBONES, MODES, GeneratorConfig
+from .generator import BACKBONES, MODES, MODULATED_MODES, GeneratorConfig
 
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
@@ -52,6 +52,7 @@ class ModelSettings:
     input_skip: bool = False      # admc option: the generator corrects its input (the authors': no skip)
     backbone: str = "residual"    # residual (the paper's full-resolution body) | unet (multi-scale, model/unet.py)
     levels: int = 3               # unet: resolution halvings; `blocks` then run at 1/2^levels
+    base: str = "noisy"           # noisy (the paper's denoiser) | oidn (admc+oidn: corrects OIDN's output)
 
     def check(self) -> None:
         _positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels", "levels"))
@@ -59,11 +60,15 @@ class ModelSettings:
         _require(self.backbone in BACKBONES, "backbone", f"{self.backbone!r} is not one of {BACKBONES}")
         _require(self.critic_norm in NORMS, "critic_norm", f"{self.critic_norm!r} is not one of {NORMS}")
         _require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
+        _require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
+        _require(self.base == "noisy" or self.mode in MODULATED_MODES, "base",
+                 f"'oidn' needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
+                 f"its EncoderNet), got mode {self.mode!r}")
 
     def generator_config(self) -> GeneratorConfig:
         return GeneratorConfig(channels=self.channels, blocks=self.blocks, cond_channels=self.cond_channels,
                                encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip,
-                               backbone=self.backbone, levels=self.levels)
+                               backbone=self.backbone, levels=self.levels, base=self.base)
 
     @classmethod
     def from_saved(cls, saved: dict) -> "ModelSettings":

@@ -81,9 +81,10 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def _open_reader(store: Path, split: str, transform: dict, branch: str, source: str) -> PatchReader:
+def _open_reader(run: _Run, split: str, transform: dict, branch: str, source: str) -> PatchReader:
+    """The rows of a split and branch, with their OIDN bases for a refiner (model.base = "oidn")."""
     try:
-        return PatchReader(store, split, expect_transform=transform, branch=branch)
+        return PatchReader(run.store, split, expect_transform=transform, branch=branch, base=run.model.base == "oidn")
     except PatchStoreError as exc:
         raise PatchStoreError(f"refused for {source}: {exc}") from None
 
@@ -202,7 +203,7 @@ def _open_train(run: _Run, transform: dict, source: str) -> dict[str, PatchReade
     store, settings = run.store, run.settings
     readers: dict[str, PatchReader] = {}
     for branch in settings.branches:
-        reader = _open_reader(store, "train", transform, branch, source)
+        reader = _open_reader(run, "train", transform, branch, source)
         if len(reader) == 0 and branch == "specular":
             run.skipped.append(branch)
             run.say(f"{store}: no specular patches in the train split; the specular branch is not trained")
@@ -221,7 +222,7 @@ def _load_val(run: _Run, readers: dict[str, PatchReader], transform: dict, sourc
     val: dict[str, dict] = {}
     if settings.val_every:
         for branch in readers:
-            val_reader = _open_reader(store, "val", transform, branch, source)
+            val_reader = _open_reader(run, "val", transform, branch, source)
             if len(val_reader) == 0 and branch == "specular":
                 run.say(f"{store}: no specular patches in the val split; specular is not validated")
                 continue

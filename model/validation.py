@@ -26,7 +26,8 @@ def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
              device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, float]:
-    """{"psnr", "relmse", "noisy_psnr", "noisy_relmse"} averaged over the val patches, the generator
+    """{"psnr", "relmse", "noisy_psnr", "noisy_relmse"[, "base_psnr", "base_relmse"]} averaged over the val
+    patches (base: OIDN's output, for a refiner), the generator
     run in `dtype` as in training (and as the denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
@@ -35,13 +36,18 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     for i in range(0, len(val["noisy"]), batch_size):
         noisy = val["noisy"][i:i + batch_size].to(device, memory_format=memory)
         features = val["features"][i:i + batch_size].to(device, memory_format=memory)
+        base = val["base"][i:i + batch_size].to(device, memory_format=memory) if "base" in val else None
         with autocast_for(device, dtype):
-            outputs.append(generator(noisy, features).float().cpu())
+            outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
     features = val["features"]
     ref = to_linear(val["reference"], features, branch)
     out = to_linear(torch.cat(outputs), features, branch)
     noisy = to_linear(val["noisy"], features, branch)
-    return {"psnr": float(psnr_torch(out, ref).mean()), "relmse": float(relmse_torch(out, ref).mean()),
-            "noisy_psnr": float(psnr_torch(noisy, ref).mean()),
-            "noisy_relmse": float(relmse_torch(noisy, ref).mean())}
+    scores = {"psnr": float(psnr_torch(out, ref).mean()), "relmse": float(relmse_torch(out, ref).mean())}
+    for name in ("noisy", "base"):  # what the generator starts from: the run must beat it
+        if name in val:
+            start = to_linear(val[name], features, branch)
+            scores.update({f"{name}_psnr": float(psnr_torch(start, ref).mean()),
+                           f"{name}_relmse": float(relmse_torch(start, ref).mean())})
+    return scores

@@ -74,6 +74,7 @@ class TileConfig:
     candidates_per_crop: int
     split: tuple[float, float, float]
     seed: int
+    oidn_base: bool
 
     def check(self) -> None:
         # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built
@@ -286,6 +287,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
         sections[field.name] = section
     config = Config(**sections)
     _check_test_set_apart(config)
+    _require(config.model.base != "oidn" or config.tile.oidn_base, "tile.oidn_base",
+             "is false, but model.base = 'oidn' trains on OIDN's outputs, which tiling stores only when it is true")
     return config
 
 

@@ -5,7 +5,7 @@ weights file, named as Table 1's columns), runs the evaluation and renders the p
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +23,8 @@ from admc.pipeline.evaluation.table1 import build_table1
 from admc.pipeline.render import stage as render
 from admc.pipeline.render import scenes
 from admc.pipeline.render.scenes import SceneSpec
-from admc.pipeline.stages import render_corpus
-from admc.pipeline.train_stage import load_model
+from admc.pipeline.stages import StageError, render_corpus
+from admc.pipeline.train_stage import default_weights, load_model
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
 MODEL_TILE = 512   # tile size of the learned denoiser in pixels (bounds memory; results are the same)
@@ -57,9 +57,10 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
     return chosen
 
 
-def named_weights(specs: list[str]) -> list[tuple[str, Path]]:
-    """[(column name, path)] from --weights values PATH or NAME=PATH. One unnamed file is "admc"; several
-    are "admc-<run>" after their run folder (or file stem), so ablations sit side by side in Table 1."""
+def named_weights(specs: list[str]) -> list[tuple[str | None, Path]]:
+    """[(column name, path)] from --weights values PATH or NAME=PATH. One unnamed file is named by the
+    base it records (None here: "admc" or "admc+oidn"); several are "admc-<run>" after their run folder
+    (or file stem), so ablations sit side by side in Table 1."""
     named = []
     for spec in specs:
         name, sep, rest = spec.partition("=")
@@ -69,18 +70,31 @@ def named_weights(specs: list[str]) -> list[tuple[str, Path]]:
             path = Path(spec)
             label = path.parent.name if path.stem in ("weights-fp16", "checkpoint") else path.stem
             named.append((None if len(specs) == 1 else f"admc-{label}", path))
-    named = [(name or "admc", path) for name, path in named]
-    names = [name for name, _ in named]
-    if len(set(names)) != len(names):
-        raise EvalStageError(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
     return named
 
 
+def default_models(cfg: Config) -> list[Path]:
+    """The config's own model (`default_weights`: its finetune run, else pretrain run, else shipped
+    weights), then the same for the other base where such weights exist: by default Table 1 shows
+    admc and admc+oidn side by side."""
+    other = "oidn" if cfg.model.base == "noisy" else "noisy"
+    paths = [default_weights(cfg)]
+    try:
+        paths.append(default_weights(replace(cfg, model=replace(cfg.model, base=other))))
+    except StageError:
+        pass
+    return paths
+
+
 def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "auto") -> list[Denoiser]:
-    """The trained model once per weights file (default: this config's finetune, else pretrain run, else
-    the shipped weights), each named as its Table 1 column."""
-    named = named_weights(weights) if weights else [("admc", None)]
-    return [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
+    """The trained models, once per weights file (default: `default_models`), each named as its Table 1
+    column."""
+    named = named_weights(weights) if weights else [(None, path) for path in default_models(cfg)]
+    models = [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
+    names = [model.name for model in models]
+    if len(set(names)) != len(names):
+        raise EvalStageError(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
+    return models
 
 
 def _report_images(result: EvalResult) -> list[html.ReportImage]:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import admc
 from admc.errors import AdmcError
-from admc.model import transforms
+from admc.model import oidn_base, transforms
 from admc.model.critic import DOWNSAMPLING
 from admc.pipeline import runner, slurm
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
@@ -17,7 +17,7 @@ from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.stores import patches
 from admc.stores.atomic import read_json
 
-TILE_CODE = code_version(tile, transforms, patches)
+TILE_CODE = code_version(tile, transforms, oidn_base, patches)
 
 
 class StageError(AdmcError, RuntimeError):
@@ -135,7 +135,8 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "store": str(store_path), "split": split, "scene_id": spec.scene_id,
                         "scene_hash": levels["reference"].params["scene_hash"],
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
-                        "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed},
+                        "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed,
+                        "oidn_base": cfg.tile.oidn_base},
                     source=render.scene_source(spec))
         if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled):
             cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders

@@ -32,7 +32,8 @@ def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Pa
 
 
 def train_dir(cfg: Config, stage: str) -> Path:
-    return cfg.workdir_path("train") / stage
+    """workdir/train/<stage>, or <stage>-oidn for a refiner: the two models train side by side."""
+    return cfg.workdir_path("train") / (stage if cfg.model.base == "noisy" else f"{stage}-{cfg.model.base}")
 
 
 def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart: bool = False,
@@ -126,6 +127,6 @@ def default_weights(cfg: Config) -> Path:
 
 
 def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int = 512,
-               name: str = "admc") -> FullImageDenoiser:
+               name: str | None = None) -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda)."""
     return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name)

@@ -3,6 +3,11 @@ from __future__ import annotations
 
 BRANCHES = ("diffuse", "specular")
 
+BASES = ("noisy", "oidn")
+"""What a generator starts from and corrects: the noisy radiance (the paper's denoiser) or Intel Open
+Image Denoise's output for the same branch (the admc+oidn refiner, which sees the noisy radiance
+through its EncoderNet)."""
+
 FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
 """The feature channels in the authors' order: normal(3), depth(1), albedo(3)."""
 N_FEATURES = len(FEATURE_CHANNELS)

@@ -4,7 +4,9 @@ Crops are chosen once per scene and shared by every spp level, so each noisy row
 the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
 candidates are drawn uniformly and kept with probability proportional to their relative noise
 plus reference edge strength, with a floor so flat regions still appear. Splits are assigned per
-scene by a stable hash, never per patch, and never move when the corpus grows.
+scene by a stable hash, never per patch, and never move when the corpus grows. With `oidn_base`,
+OIDN denoises each whole noisy image per branch (as inference does) and its crops are stored as the
+rows' bases, the input of an admc+oidn refiner.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.model import transforms as tf
+from admc.model.oidn_base import describe as describe_oidn, oidn_bases
 from admc.pipeline.render.stage import EXR_NAME
 from admc.stores import exr, patches
 
@@ -91,7 +94,7 @@ def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
 
 def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
-               seed: int) -> dict:
+               seed: int, oidn_base: bool = False) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}."""
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
@@ -110,7 +113,8 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     # inference has, so expm1(output) * (noisy albedo + eps) targets the reference radiance exactly
     # even where a low-spp albedo estimate is noisy (rough plastic, texture edges).
     rows: dict[str, list] = {name: [] for name in ("noisy_diffuse", "noisy_specular", "features", "ref_diffuse",
-                                                   "ref_specular", "spp", "origin")}
+                                                   "ref_specular", "base_diffuse", "base_specular", "spp",
+                                                   "origin")}
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     for key in spp_inputs:
         layers = noisy[key]
@@ -121,6 +125,12 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
         if has_specular:
             rows["noisy_specular"].append(_crops(tf.specular_forward(layers["specular"]), origins, patch_size))
             rows["ref_specular"].append(_crops(ref_specular, origins, patch_size))
+        if oidn_base:
+            bases = oidn_bases(layers)
+            rows["base_diffuse"].append(_crops(tf.diffuse_forward(bases["diffuse"], layers["albedo"]),
+                                               origins, patch_size))
+            if has_specular:
+                rows["base_specular"].append(_crops(tf.specular_forward(bases["specular"]), origins, patch_size))
         feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
         rows["features"].append(_crops(feats, origins, patch_size))
         rows["spp"].append(np.full(len(origins), int(key[3:]), dtype=np.int32))
@@ -139,6 +149,7 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
         "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
         "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
         "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
+        **({"base": describe_oidn()} if oidn_base else {}),
     })
     return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
-            "has_specular": has_specular, "sanitized": sanitized, "fp16_clamped": clamped}
+            "has_specular": has_specular, "has_base": oidn_base, "sanitized": sanitized, "fp16_clamped": clamped}

@@ -23,6 +23,8 @@ SHARD_PATCHES = 256
 
 ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": N_FEATURES}
 CROP_IMAGES = {"ref_diffuse": 3, "ref_specular": 3}
+BASE_IMAGES = {"base_diffuse": 3, "base_specular": 3}
+"""Optional row arrays (tile.oidn_base): OIDN's output for the row, what model.base = "oidn" refines."""
 SPECULAR_ARRAYS = ("noisy_specular", "ref_specular")
 REQUIRED_ROOT_ATTRS = ("transform", "patch_size")
 REQUIRED_SCENE_ATTRS = ("scene_hash", "image_size", "sanitization")
@@ -35,6 +37,8 @@ LAYOUT = {
     "noisy_diffuse": "transform.diffuse of the noisy render", "noisy_specular": "transform.specular",
     "features": "transform.feature_channels", "ref_diffuse": "transform.diffuse of the reference",
     "ref_specular": "transform.specular of the reference", "origin": "(y, x) of the crop in the image",
+    "base_diffuse": "optional, per row: transform.diffuse of OIDN's denoised noisy diffuse (scene attr 'base')",
+    "base_specular": "optional, per row: transform.specular of OIDN's denoised noisy specular",
 }
 
 

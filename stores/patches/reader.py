@@ -12,7 +12,7 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BRANCHES
-from admc.stores.patches.format import (CROP_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
+from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
                                         _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
                                         list_scenes)
 
@@ -23,17 +23,19 @@ class PatchReader:
     Row i of the "diffuse" branch pairs noisy_diffuse, features and the row's reference crop;
     the "specular" branch indexes only scenes that have specular arrays. Index arrays are loaded
     once per scene; each item then reads exactly one chunk of each image array. Picklable (for
-    DataLoader workers): array handles are reopened lazily in each process.
+    DataLoader workers): array handles are reopened lazily in each process. With `base`, items also
+    carry the row's stored OIDN output ("base", for model.base = "oidn"), and every scene must have it.
     """
 
     def __init__(self, path: str | os.PathLike, split: str, expect_transform: dict | None = None,
-                 branch: str = "diffuse"):
+                 branch: str = "diffuse", base: bool = False):
         _check_split(split)
         if branch not in BRANCHES:
             raise PatchStoreError(f"branch {branch!r}: must be one of {BRANCHES}")
         self.path = Path(path)
         self.split = split
         self.branch = branch
+        self.base = base
         root = _open_root(self.path)
         self.attrs = dict(root.attrs)
         if expect_transform is not None:
@@ -55,6 +57,12 @@ class PatchReader:
                 group = root[f"{split}/{scene}"]
                 if branch == "specular" and not group.attrs["has_specular"]:
                     continue
+                has_base = group.attrs.get("has_base", False)
+            if base and not has_base:
+                raise PatchStoreError(
+                    f"patch store {self.path}: scene {split}/{scene} has no OIDN bases, which model.base = 'oidn' "
+                    "trains on; set tile.oidn_base = true and run `admc-pipe dataset` (it re-tiles from the cached "
+                    "renders)")
             self.scenes.append(scene)
             for name, out in (("spp", self._spp), ("crop", self._crop)):
                 with _reading(self.path, split, scene, name):
@@ -95,13 +103,16 @@ class PatchReader:
         k, row = self._locate(i)
         scene = self.scenes[k]
         crop = int(self._crop[k][row])
-        return {
+        item = {
             "noisy": self._patch(scene, f"noisy_{self.branch}", row),
             "features": self._patch(scene, "features", row),
             "reference": self._patch(scene, f"ref_{self.branch}", crop),
             "spp": int(self._spp[k][row]),
             "scene": scene,
         }
+        if self.base:
+            item["base"] = self._patch(scene, f"base_{self.branch}", row)
+        return item
 
     def _patch(self, scene: str, name: str, index: int) -> np.ndarray:
         with _reading(self.path, self.split, scene, name):
@@ -143,7 +154,7 @@ def store_summary(path: str | os.PathLike) -> dict:
             entry["crops"] += int(group.attrs["n_crops"])
             for spp, count in zip(*np.unique(group["spp"][...], return_counts=True)):
                 entry["rows_per_spp"][int(spp)] = entry["rows_per_spp"].get(int(spp), 0) + int(count)
-            for name in (*ROW_IMAGES, *CROP_IMAGES):
+            for name in (*ROW_IMAGES, *BASE_IMAGES, *CROP_IMAGES):
                 if name in group:
                     with _reading(path, split, scene, name):
                         values = group[name][...]

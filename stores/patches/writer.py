@@ -13,7 +13,7 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.stores.atomic import fsync_path
-from admc.stores.patches.format import (CROP_IMAGES, FORMAT, FORMAT_VERSION, LAYOUT, REQUIRED_ROOT_ATTRS,
+from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, FORMAT, FORMAT_VERSION, LAYOUT, REQUIRED_ROOT_ATTRS,
                                         REQUIRED_SCENE_ATTRS, ROW_IMAGES, SHARD_PATCHES, SPECULAR_ARRAYS, SPLITS,
                                         STAGING, PatchStoreError, _array_digest, _check_name, _check_split, _jsonable,
                                         _lookup, _open_root, exists, list_scenes)
@@ -29,6 +29,8 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
     `attrs` must hold "transform" (the transform spec) and "patch_size"; other keys (code version,
     render fingerprint, normalisation statistics...) are stored as given. An existing store whose
     attributes differ is refused with the differing keys named, so a corpus never mixes transforms.
+    A layout description that only gained entries (optional arrays documented by newer code, e.g. the
+    OIDN bases) is brought up to date in place: what the scenes hold is unchanged.
     """
     path = Path(path)
     for key in REQUIRED_ROOT_ATTRS:
@@ -44,6 +46,10 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
     if exists(path):
         existing = dict(_open_root(path).attrs)
         diff = differing_keys(existing, full)
+        documented_later = [k for k in diff if k.startswith("layout.") and k.split(".", 1)[1] not in existing["layout"]]
+        if diff and diff == documented_later:
+            zarr.open_group(store=LocalStore(path), mode="r+").attrs.put(full)
+            return
         if diff and any(list_scenes(path, split) for split in SPLITS):
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
@@ -58,7 +64,7 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
 
 
 def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> dict[str, np.ndarray]:
-    known = {*ROW_IMAGES, *CROP_IMAGES, "spp", "crop", "origin"}
+    known = {*ROW_IMAGES, *CROP_IMAGES, *BASE_IMAGES, "spp", "crop", "origin"}
     unknown = set(arrays) - known
     if unknown:
         raise PatchStoreError(f"{where}: unknown arrays {sorted(unknown)} (known: {sorted(known)})")
@@ -66,6 +72,10 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     required = ["noisy_diffuse", "features", "ref_diffuse", "spp", "crop", "origin"]
     if specular:
         required += list(SPECULAR_ARRAYS)
+    if any(name in arrays for name in BASE_IMAGES):  # bases come for every branch the scene has
+        required += ["base_diffuse"] + (["base_specular"] if specular else [])
+        if "base_specular" in arrays and not specular:
+            raise PatchStoreError(f"{where}: base_specular given for a scene without specular arrays")
     for name in required:
         if name not in arrays:
             raise PatchStoreError(f"{where}: missing array {name!r}")
@@ -74,11 +84,11 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     if n == 0 or m == 0:
         raise PatchStoreError(f"{where}: a scene needs at least one row and one crop (got {n} rows, {m} crops)")
     out = {}
-    for name, channels in {**ROW_IMAGES, **CROP_IMAGES}.items():
+    for name, channels in {**ROW_IMAGES, **BASE_IMAGES, **CROP_IMAGES}.items():
         if name not in arrays:
             continue
         a = np.asarray(arrays[name])
-        want = ((n if name in ROW_IMAGES else m), channels, patch, patch)
+        want = ((m if name in CROP_IMAGES else n), channels, patch, patch)
         if a.shape != want:
             raise PatchStoreError(f"{where}: {name} has shape {a.shape}, expected {want}")
         if a.dtype not in (np.float16, np.float32, np.float64):
@@ -137,6 +147,7 @@ def write_scene(path: str | os.PathLike, split: str, scene_id: str, arrays: dict
     data = _validate_arrays(arrays, root.attrs["patch_size"], where)
     attrs = _jsonable({
         **scene_attrs, "scene_id": scene_id, "has_specular": "noisy_specular" in data,
+        "has_base": "base_diffuse" in data,
         "n_rows": len(data["spp"]), "n_crops": len(data["origin"]),
         "spp_levels": sorted({int(s) for s in data["spp"]}),
     }, f"{where}: scene_attrs")

@@ -1,0 +1,133 @@
+"""admc+oidn: a CFM generator that corrects Intel Open Image Denoise's output (model.base = "oidn").
+
+Real OIDN (pyoidn), real renders, a real patch store and real training steps at tiny sizes.
+"""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from admc.model import transforms as tf
+from admc.model.generator import GeneratorConfig, build_generator
+from admc.model.inference import FullImageDenoiser
+from admc.model.oidn_base import oidn_bases
+from admc.model.settings import ModelSettings, small_settings
+from admc.model.trainer import train
+from admc.pipeline.config import ConfigError, load_config
+from admc.pipeline.stages import build_dataset
+from admc.stores import exr, patches
+from admc.stores.patches import PatchReader, PatchStoreError
+from conftest import tiny_store_overrides
+
+TINY = dict(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_skip=True)
+
+
+def refiner(backbone="residual"):
+    torch.manual_seed(0)
+    return build_generator(GeneratorConfig(**TINY, backbone=backbone, base="oidn"))
+
+
+@pytest.mark.parametrize("backbone", ["residual", "unet"])
+def test_an_untrained_refiner_returns_its_base_exactly(backbone):
+    noisy, feats, base = torch.rand(2, 3, 40, 24), torch.rand(2, 7, 40, 24), torch.rand(2, 3, 40, 24) * 5
+    assert torch.equal(refiner(backbone)(noisy, feats, base), base)
+
+
+def test_the_refiner_sees_the_noisy_input_and_learns_from_the_first_step():
+    g = refiner()
+    noisy, feats, base = torch.rand(1, 3, 16, 16), torch.rand(1, 7, 16, 16), torch.rand(1, 3, 16, 16)
+    g(noisy, feats, base).sub(base + 0.1).abs().mean().backward()
+    last = g.tail[-2].weight
+    assert id(last) in {id(p) for p in g.parameter_groups()["body"]}  # learns from step 0 with the body
+    assert last.grad.abs().sum() > 0
+    with torch.no_grad():
+        last.normal_(0.0, 0.1)
+        other = noisy.clone()
+        other[..., 8, 8] += 1.0  # a different noisy input changes the output through the encoder
+        assert not torch.equal(g(noisy, feats, base), g(other, feats, base))
+
+
+def test_base_is_required_exactly_when_the_generator_refines():
+    noisy, feats = torch.rand(1, 3, 8, 8), torch.rand(1, 7, 8, 8)
+    with pytest.raises(ValueError, match="base image"):
+        refiner()(noisy, feats)
+    with pytest.raises(ValueError, match="takes no base"):
+        build_generator(GeneratorConfig(**TINY))(noisy, feats, noisy)
+    with pytest.raises(ValueError, match="base"):
+        ModelSettings(mode="none", base="oidn").check()
+
+
+def test_config_refuses_a_refiner_without_stored_bases(tmp_path):
+    with pytest.raises(ConfigError, match="tile.oidn_base"):
+        load_config(None, [f"run.workdir='{tmp_path}'", "model.base='oidn'", "tile.oidn_base=false"])
+    with pytest.raises(ConfigError, match="model.base"):
+        load_config(None, [f"run.workdir='{tmp_path}'", "model.base='median'"])
+
+
+@pytest.fixture(scope="module")
+def store_with_bases(tmp_path_factory, variant):
+    workdir = tmp_path_factory.mktemp("bases")
+    cfg = load_config(None, tiny_store_overrides(workdir, 64, 32))
+    return cfg, build_dataset(cfg, progress=False).store
+
+
+def test_tiling_stores_oidn_of_the_whole_image_per_row(store_with_bases):
+    cfg, store = store_with_bases
+    reader = PatchReader(store, "train", branch="diffuse", base=True)
+    scene, row = reader.locate(0)
+    item = reader[0]
+    group = patches.format._open_root(store)[f"train/{scene}"]
+    assert group.attrs["has_base"] and group.attrs["base"]["method"] == "oidn"
+    y, x = (int(v) for v in group["origin"][row])
+    spp = item["spp"]
+    layers = {name: tf.sanitize(a, name)[0]
+              for name, a in exr.read_exr(cfg.workdir_path("renders") / scene / f"spp{spp:04d}.exr").items()
+              if name in ("diffuse", "specular", "albedo", "normal")}
+    expected = tf.diffuse_forward(oidn_bases(layers)["diffuse"], layers["albedo"])[y:y + 32, x:x + 32]
+    # stored as float16: 2^-11 relative rounding of log values
+    np.testing.assert_allclose(item["base"], expected.transpose(2, 0, 1), rtol=2**-10, atol=1e-6)
+
+
+def test_a_store_without_bases_is_refused_naming_the_scene_and_the_key(tmp_path, variant):
+    cfg = load_config(None, tiny_store_overrides(tmp_path, 64, 32) + ["tile.oidn_base=false"])
+    store = build_dataset(cfg, progress=False).store
+    assert len(PatchReader(store, "train")) > 0  # valid for the noisy base
+    with pytest.raises(PatchStoreError, match=r"scene train/\S+ has no OIDN bases.*tile.oidn_base = true"):
+        PatchReader(store, "train", base=True)
+
+
+def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_with_bases, tmp_path):
+    cfg, store = store_with_bases
+    model, settings = small_settings()
+    model = dataclasses.replace(model, **TINY, critic_channels=4, base="oidn")
+    settings = dataclasses.replace(settings, steps=4, l1_warmup_steps=2, critic_only_steps=1, val_every=2,
+                                   val_patches=2, checkpoint_every=2, log_every=1, head_tail_start_step=0)
+    result = train(store, tmp_path / "run", settings, model, progress=False)
+    assert result.validation["diffuse"]["base_relmse"] > 0  # OIDN's own score: what the run must beat
+    from admc.model.inference import load_denoiser
+
+    denoiser = load_denoiser(result.weights)
+    assert denoiser.name == "admc+oidn" and denoiser.base == "oidn"
+    layers = exr.read_exr(cfg.workdir_path("renders") / store_scene(store) / "spp0004.exr")
+    out = denoiser(layers)
+    assert out.image.shape == layers["diffuse"].shape and np.isfinite(out.image).all()
+    assert out.base_seconds > 0
+
+
+def store_scene(store):
+    return patches.list_scenes(store, "train")[0]
+
+
+def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn(store_with_bases):
+    cfg, store = store_with_bases
+    specular_scene = PatchReader(store, "train", branch="specular").scenes[0]
+    layers = exr.read_exr(cfg.workdir_path("renders") / specular_scene / "spp0004.exr")
+    layers["coverage"] = np.ones_like(layers["coverage"])  # every pixel goes through the network
+    branches = {b: refiner() for b in ("diffuse", "specular")}
+    out = FullImageDenoiser(branches["diffuse"], branches["specular"], tile=24)(layers)
+    clean = {name: tf.sanitize(layers[name], name)[0] for name in ("diffuse", "specular", "albedo", "normal")}
+    bases = oidn_bases(clean)
+    # the log transform and its inverse round trip in float32
+    np.testing.assert_allclose(out.diffuse, bases["diffuse"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out.specular, bases["specular"], rtol=1e-5, atol=1e-6)
