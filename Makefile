@@ -10,8 +10,9 @@ CFGARG  := $(if $(CONFIG),--config $(CONFIG),)
 setup:
 	@bash scripts/setup.sh
 
-demo: dataset               ## the whole product on the embedded default corpus: dataset, fine-tune, Table 1
+demo: dataset               ## the whole product on the embedded default corpus: dataset, fine-tune both models, Table 1
 	$(ADMC) train --stage finetune $(CFGARG) $(ARGS)
+	$(ADMC) train --stage finetune --set model.base=oidn $(CFGARG) $(ARGS)
 	$(ADMC) eval $(CFGARG) $(ARGS)
 
 render: setup               ## render the scene corpus to EXR (cached, resumable)

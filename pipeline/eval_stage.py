@@ -70,6 +70,9 @@ def named_weights(specs: list[str]) -> list[tuple[str | None, Path]]:
             path = Path(spec)
             label = path.parent.name if path.stem in ("weights-fp16", "checkpoint") else path.stem
             named.append((None if len(specs) == 1 else f"admc-{label}", path))
+    names = [name for name, _ in named]
+    if len(set(names)) != len(names):
+        raise EvalStageError(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
     return named
 
 
@@ -90,11 +93,7 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     """The trained models, once per weights file (default: `default_models`), each named as its Table 1
     column."""
     named = named_weights(weights) if weights else [(None, path) for path in default_models(cfg)]
-    models = [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
-    names = [model.name for model in models]
-    if len(set(names)) != len(names):
-        raise EvalStageError(f"the --weights columns would be named {names}; name them apart with NAME=PATH")
-    return models
+    return [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
 
 
 def _report_images(result: EvalResult) -> list[html.ReportImage]:

@@ -87,7 +87,8 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
 
 def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
     from admc.pipeline.eval_stage import named_weights
-    assert named_weights(["runs/a/weights-fp16.pt"]) == [("admc", Path("runs/a/weights-fp16.pt"))]
+    # one unnamed file: named after the base it records when loaded ("admc" or "admc+oidn")
+    assert named_weights(["runs/a/weights-fp16.pt"]) == [(None, Path("runs/a/weights-fp16.pt"))]
     assert [n for n, _ in named_weights(["runs/a/weights-fp16.pt", "base=x.pt"])] == ["admc-a", "base"]
     with pytest.raises(EvalStageError, match=r"would be named \['admc-a', 'admc-a'\]; name them apart"):
         named_weights(["runs/a/weights-fp16.pt", "other/a/checkpoint.pt"])
