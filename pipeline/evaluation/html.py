@@ -2,7 +2,8 @@
 
 Everything is inside index.html: images and plots as base64 PNG data URIs, CSS and a little vanilla
 JS inline (the page, its CSS and JS are the package files in templates/), no fonts or scripts from
-the network, so the file can be mailed or archived as is. Table 1 comes as a Table1 object.
+the network, so the file can be mailed or archived as is. Table 1 comes as a Table1 object; each image
+comparison as a ReportGroup, which `report_group` encodes while the caller still holds the float images.
 
 Display rules (also printed on the page):
 - images are tone-mapped with clip(max(x, 0)^(1/2.2)) to 8 bit, no exposure change: the same display
