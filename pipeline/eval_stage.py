@@ -8,8 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
-
 from admc.common.metrics import METRICS
 from admc.errors import AdmcError
 from admc.pipeline.config import Config
@@ -18,7 +16,7 @@ from admc.pipeline.evaluation import evaluate, html
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser,
                                                 optix_unavailable_reason)
 from admc.pipeline.evaluation.inputs import find_test_images
-from admc.pipeline.evaluation.records import EvalResult
+from admc.pipeline.evaluation.records import EvalResult, ScoredImage
 from admc.pipeline.evaluation.table1 import build_table1
 from admc.pipeline.render import stage as render
 from admc.pipeline.render import scenes
@@ -96,17 +94,23 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     return [load_model(cfg, path, device, MODEL_TILE, name) for name, path in named]
 
 
-def _report_images(result: EvalResult) -> list[html.ReportImage]:
-    metrics = {(r.scene_id, r.spp, r.method): {m.label: getattr(r, m.key) for m in METRICS} for r in result.records}
-    images = []
-    for scene in result.scenes[:REPORT_SCENES]:
-        reference = np.load(scene.reference)
-        for spp, outputs in sorted(scene.outputs.items()):
-            images.append(html.ReportImage(
-                scene_id=scene.scene_id, spp=spp, reference=reference,
-                outputs={name: np.load(path) for name, path in outputs.items()},
-                metrics={name: metrics[(scene.scene_id, spp, name)] for name in outputs}))
-    return images
+class ReportFigures:
+    """evaluate()'s `on_image` for the HTML page: the figures of the first `limit` scenes, made while the
+    float images are in memory and kept only as encoded PNGs (html.ReportGroup)."""
+
+    def __init__(self, limit: int = REPORT_SCENES) -> None:
+        self.limit = limit
+        self.scene_ids: list[str] = []
+        self.groups: list[html.ReportGroup] = []
+
+    def __call__(self, scored: ScoredImage) -> None:
+        if scored.scene_id not in self.scene_ids:
+            if len(self.scene_ids) == self.limit:
+                return
+            self.scene_ids.append(scored.scene_id)
+        metrics = {name: {m.label: getattr(scored.records[name], m.key) for m in METRICS} for name in scored.outputs}
+        self.groups.append(html.report_group(html.ReportImage(scored.scene_id, scored.spp, scored.reference,
+                                                              dict(scored.outputs), metrics)))
 
 
 def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
@@ -135,12 +139,13 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     images = find_test_images(renders_dir, scene_ids)
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
+    figures = ReportFigures()
     result = evaluate.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
-                               warmup=cfg.eval.warmup, not_run=not_run)
+                               warmup=cfg.eval.warmup, not_run=not_run, on_image=figures)
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = html.write_report(
         out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes", table=build_table1(result),
         metric_definitions={m.label: m.definition for m in METRICS},
-        plots=[result.files["error_vs_time"]], images=_report_images(result), device=devices,
+        plots=[result.files["error_vs_time"]], groups=figures.groups, device=devices,
         notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])
     return EvalOutcome(result, report, scene_ids)

@@ -5,12 +5,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
+from admc.common.metrics import METRICS
 from admc.pipeline.config import load_config
-from admc.pipeline.eval_stage import EvalStageError, eval_scenes, run_eval
+from admc.pipeline.eval_stage import REPORT_SCENES, EvalStageError, eval_scenes, run_eval
 from admc.pipeline.evaluation.baselines import optix_unavailable_reason
+from admc.pipeline.evaluation.html import ReportImage, report_group
+from admc.stores.exr import read_image
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
@@ -39,6 +41,23 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
         assert methods == {"noisy", "oidn"} and results["not_run"] == {"optix": why_no_optix}
         assert f"**Not run:** optix: {why_no_optix}" in files["table1_md"].read_text()
         assert "Not run:" in html and html_escape(why_no_optix) in html
+
+
+def test_eval_page_shows_the_written_images_and_no_npy_is_left(tmp_path, variant):
+    """The page's figures, made while evaluation held the images, are the ones the written EXRs give:
+    for every (scene, spp) shown, the same encoded PNGs and metrics, in the order evaluated."""
+    outcome = run_eval(load_config(None, overrides(tmp_path) + ["eval.optix='off'"]), progress=False)
+    out, page = outcome.report.parent, outcome.report.read_text()
+    assert not list(out.rglob("*.npy"))
+    metrics = {(r.scene_id, r.spp, r.method): {m.label: getattr(r, m.key) for m in METRICS}
+               for r in outcome.result.records}
+    shown = outcome.result.scenes[:REPORT_SCENES]
+    assert len(shown) == 2 and page.count('<section class="group"') == 2 * 2
+    for index, (scene, spp) in enumerate((s, spp) for s in shown for spp in sorted(s.outputs)):
+        outputs = {name: read_image(path) for name, path in scene.outputs[spp].items()}
+        item = ReportImage(scene.scene_id, spp, read_image(scene.reference), outputs,
+                           {name: metrics[(scene.scene_id, spp, name)] for name in outputs})
+        assert f'<section class="group" id="group-{index}">{report_group(item).body}</section>' in page
 
 
 @pytest.mark.skipif(optix_unavailable_reason() is None, reason="this machine runs OptiX")
@@ -81,7 +100,7 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
     outcome = run_eval(cfg, progress=False)
     assert outcome.scene_ids == ["xml-kitchen"]
     (scene,) = outcome.result.scenes
-    assert np.load(scene.reference).shape == (30, 40, 3), "the film's 40x30, not render.resolution"
+    assert read_image(scene.reference).shape == (30, 40, 3), "the film's 40x30, not render.resolution"
     assert {row.method for row in outcome.result.table} >= {"noisy", "oidn"}
 
 

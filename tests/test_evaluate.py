@@ -1,8 +1,10 @@
 """Evaluation on a real tiny render set (2 scenes x 2 spp, 32x32) with the noisy input and OIDN on CPU."""
 import csv
+import gc
 import json
 import math
 import shutil
+import weakref
 from collections import defaultdict
 
 import numpy as np
@@ -10,16 +12,17 @@ import pyoidn
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from admc.common.metrics import METRICS, score, to_ldr
+from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
+from admc.pipeline.eval_stage import ReportFigures
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
-                                                optix_unavailable_reason, time_denoiser)
+                                                noisy_color, optix_unavailable_reason, time_denoiser)
 from admc.pipeline.evaluation.evaluate import evaluate
-from admc.pipeline.evaluation.inputs import find_test_images
-from admc.pipeline.evaluation.records import EvalError, best_percent
+from admc.pipeline.evaluation.inputs import find_test_images, read_reference
+from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percent
 from admc.pipeline.render.stage import view_space_normals
 from admc.pipeline.stages import render_corpus
-from admc.stores.exr import read_exr, write_exr
+from admc.stores.exr import BEAUTY, exr_layers, read_exr, read_image, write_exr
 
 METRIC_KEYS = [m.key for m in METRICS]
 
@@ -33,10 +36,17 @@ def renders(variant, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def evaluated(renders, tmp_path_factory):
+def handed():
+    """Every ScoredImage the `evaluated` run handed to its on_image, in order."""
+    return []
+
+
+@pytest.fixture(scope="module")
+def evaluated(renders, handed, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval_out")
     images = find_test_images(renders)
-    return evaluate(images, [NoisyInput(), OidnDenoiser()], out, progress=False, repeats=1, warmup=0), out
+    return evaluate(images, [NoisyInput(), OidnDenoiser()], out, progress=False, repeats=1, warmup=0,
+                    on_image=handed.append), out
 
 
 def _read_table(path):
@@ -95,8 +105,71 @@ def test_writes_every_output(evaluated):
     per_image = _read_table(out / "per_image.csv")
     assert len(per_image) == 12 and {r["method"] for r in per_image} == {"path tracer", "noisy", "oidn"}
     for scene in result.scenes:
-        assert np.load(scene.reference).shape == (32, 32, 3)
+        assert read_image(scene.reference).shape == (32, 32, 3)
         assert set(scene.inputs) == {2, 4} and set(scene.outputs[2]) == {"noisy", "oidn"}
+    assert not list(out.rglob("*.npy"))
+    written = {p.relative_to(out).as_posix() for p in (out / "images").rglob("*") if p.is_file()}
+    assert written == {f"images/{s.scene_id}/{name}.exr" for s in result.scenes
+                       for name in ("reference", "spp0002_input", "spp0004_input", "spp0002_noisy", "spp0002_oidn",
+                                    "spp0004_noisy", "spp0004_oidn")}
+
+
+def test_exrs_hold_the_scored_images_and_on_image_had_them_in_memory(renders, evaluated, handed):
+    """Each (scene, spp) is handed over once, in order, with the images that were scored; a person opening
+    the written EXRs (plain RGB, float32, read here by OpenImageIO as a viewer would) sees exactly those."""
+    result, out = evaluated
+    assert [(h.scene_id, h.spp) for h in handed] == [(t.scene_id, t.spp) for t in find_test_images(renders)]
+    doc = json.loads((out / "results.json").read_text())
+    listed = {(d["scene_id"], d["spp"], d["method"]): d["image"] for d in doc["images"] + doc["path_tracer"]}
+    for h, test in zip(handed, find_test_images(renders)):
+        np.testing.assert_array_equal(h.reference, read_reference(test.reference_path)[0])
+        np.testing.assert_array_equal(h.noisy, noisy_color(read_exr(test.noisy_path)))
+        assert list(h.records) == [PATH_TRACER, "noisy", "oidn"] and list(h.outputs) == ["noisy", "oidn"]
+        assert h.records[PATH_TRACER] in result.path_tracer
+        assert all(h.records[name] in result.records for name in h.outputs)
+        for name, image in {PATH_TRACER: h.noisy, **h.outputs}.items():
+            path = h.records[name].image
+            assert exr_layers(path) == [BEAUTY] and listed[(h.scene_id, h.spp, name)] == str(path.relative_to(out))
+            np.testing.assert_array_equal(read_image(path), image)
+            rescored = score(read_image(path), read_image(out / "images" / h.scene_id / "reference.exr"))
+            assert rescored == {k: getattr(h.records[name], k) for k in METRIC_KEYS}, "per_image.csv, from the files"
+        np.testing.assert_array_equal(read_image(out / "images" / h.scene_id / "reference.exr"), h.reference)
+
+
+class _Watcher:
+    """A real (if useless) denoiser, the noisy colour, that counts at every run how many images handed to
+    on_image for an earlier scene are still alive: evaluation must hold only the scene it works on."""
+    name = "watcher"
+    device = "cpu"
+
+    def __init__(self):
+        self.handed, self.alive = [], []
+
+    def denoise(self, layers):
+        gc.collect()
+        self.alive.append(sum(ref() is not None for ref in self.handed))
+        return noisy_color(layers)
+
+    def synchronize(self):
+        pass
+
+
+def test_evaluation_and_the_report_figures_hold_one_scene_at_a_time(renders, tmp_path):
+    images = [t for t in find_test_images(renders) if t.spp == 2]   # one test image per scene
+    watcher, figures = _Watcher(), ReportFigures(limit=1)
+
+    def on_image(scored):
+        figures(scored)
+        watcher.handed += [weakref.ref(a) for a in (scored.reference, scored.noisy, *scored.outputs.values())]
+
+    # the watcher runs after OIDN: pyoidn keeps its last call's buffers bound to its cached filter until
+    # its next call (one image, its own business), so by then the earlier scene's OIDN output is released
+    evaluate(images, [NoisyInput(), OidnDenoiser(), watcher], tmp_path, progress=False, repeats=1, warmup=0,
+             on_image=on_image)
+    assert len(images) == 2 and len(watcher.handed) == 2 * 5
+    assert watcher.alive == [0, 0], "the first scene's images outlived it"
+    assert figures.scene_ids == [images[0].scene_id] and len(figures.groups) == 1
+    assert all(isinstance(g.body, str) for g in figures.groups)
 
 
 def test_reference_render_time_ends_the_raw_curve(renders, evaluated):
@@ -154,8 +227,8 @@ def test_table_matches_independent_recomputation(renders, evaluated):
         layers = read_exr(t.noisy_path)
         noisy = layers["diffuse"] + layers.get("specular", 0)
         oidn = pyoidn.denoise(noisy, layers["albedo"], layers["normal"], hdr=True, quality="high")
-        saved = np.load(next(r.image for r in result.records
-                             if (r.scene_id, r.spp, r.method) == (t.scene_id, t.spp, "oidn")))
+        saved = read_image(next(r.image for r in result.records
+                                if (r.scene_id, r.spp, r.method) == (t.scene_id, t.spp, "oidn")))
         np.testing.assert_allclose(saved, oidn, rtol=1e-6, atol=1e-7)
         scores[(t.spp, "noisy")].append(_independent_scores(noisy, ref))
         scores[(t.spp, "oidn")].append(_independent_scores(oidn, ref))
@@ -236,7 +309,8 @@ def test_nan_in_noisy_input_is_reported_not_fatal(renders, tmp_path):
     by_method = {(r.method, r.spp): r for r in result.records}
     assert by_method[("noisy", 2)].nonfinite == 4
     assert by_method[("oidn", 2)].nonfinite == 0
-    assert np.isfinite(np.load(by_method[("oidn", 2)].image)).all()
+    assert np.isfinite(read_image(by_method[("oidn", 2)].image)).all()
+    assert count_nonfinite(read_image(raw[2].image)) == 4, "the input EXR keeps what was scored, NaN/Inf too"
     assert all(math.isfinite(getattr(r, k)) for r in result.records for k in METRIC_KEYS)
     assert next(r for r in result.table if (r.spp, r.method) == (2, "noisy")).nonfinite == 4
     assert "noisy inputs 4" in (tmp_path / "out" / "table1.md").read_text()

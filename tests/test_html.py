@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from admc.pipeline.evaluation.html import MAX_EMBED, ReportImage, embed_size, table_html, write_report
+from admc.pipeline.evaluation.html import (MAX_EMBED, ReportImage, embed_size, report_group, table_html,
+                                          write_report)
 from admc.pipeline.evaluation.table1 import Cell, Note, Table1
 
 matplotlib.use("Agg")
@@ -64,7 +65,8 @@ def _plot(path: Path) -> Path:
 def _report(tmp_path: Path, images: list[ReportImage], notes: tuple[str, ...] = ()) -> Path:
     return write_report(tmp_path / "report", title="admc evaluation <test>", table=TABLE,
                         metric_definitions={"relMSE": "mean (x - ref)^2 / (ref^2 + 0.01)", "PSNR": "dB on 8 bit"},
-                        plots=[_plot(tmp_path / "error_vs_time.png")], images=images, device="cpu (test)",
+                        plots=[_plot(tmp_path / "error_vs_time.png")], groups=[report_group(i) for i in images],
+                        device="cpu (test)",
                         notes=list(notes))
 
 
@@ -106,7 +108,7 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
         _report(tmp_path, [item])
     not_png = tmp_path / "plot.png"
     not_png.write_text("nope")
-    kwargs = dict(title="t", table=Table1([], [], []), metric_definitions={}, images=[], device="cpu")
+    kwargs = dict(title="t", table=Table1([], [], []), metric_definitions={}, groups=[], device="cpu")
     with pytest.raises(ValueError, match="plot.png: not a PNG file"):
         write_report(tmp_path / "r", plots=[not_png], **kwargs)
     with pytest.raises(ValueError, match="missing.png: no such file"):

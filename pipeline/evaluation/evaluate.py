@@ -2,28 +2,33 @@
 
 Inputs are the render stage's folders (`<renders>/<scene>/spp0004.exr` + `.json`, `reference.exr`
 + `.json`; see inputs.py). Each noisy EXR and each reference is read once; every denoiser is timed on
-it (`time_denoiser`), scored with `metrics.METRICS` against the reference into an ImageRecord, and its
-image is saved under `out_dir/images/` so the report can show it without this process holding every
-image in memory. The raw path tracer (the noisy input, costing only its render time) is scored
-alongside as the curve the denoisers must beat at equal time. The files are written by outputs.py.
+it (`time_denoiser`) and scored with `metrics.METRICS` against the reference into an ImageRecord. The raw
+path tracer (the noisy input, costing only its render time) is scored alongside as the curve the
+denoisers must beat at equal time.
+
+Every image is written as a float32 EXR a person opens in a viewer, `out_dir/images/<scene>/reference.exr`,
+`spp0004_input.exr` and `spp0004_<denoiser>.exr`: the pixels that were scored, for every scene, so any
+line of per_image.csv can be looked at or re-scored. The caller's `on_image` gets each test image's
+float images while they are in memory (the eval stage makes the HTML page's figures from them); at most
+one scene's images are held at a time, never the test set's. The tables are written by outputs.py.
 """
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
 from admc.common.metrics import count_nonfinite, score
 from admc.pipeline.evaluation.baselines import Denoiser, noisy_color, time_denoiser
 from admc.pipeline.evaluation.inputs import by_scene, read_reference
 from admc.pipeline.evaluation.outputs import write_outputs
 from admc.pipeline.evaluation.records import (PATH_TRACER, EvalError, EvalResult, ImageRecord, SceneImages,
-                                              TestImage, aggregate)
-from admc.stores.atomic import publishing
-from admc.stores.exr import read_exr
+                                              ScoredImage, TestImage, aggregate)
+from admc.stores.exr import BEAUTY, read_exr, write_exr
 
 RESERVED_NAMES = frozenset({PATH_TRACER, "input", "reference"})
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
@@ -41,45 +46,34 @@ def _check_denoisers(denoisers: list[Denoiser]) -> None:
         raise EvalError(f"denoiser names must be unique, got {names}")
 
 
-def _save(path: Path, image: np.ndarray) -> Path:
-    with publishing(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.save(f, np.asarray(image, dtype=np.float32))
+def _write(path: Path, image: np.ndarray) -> Path:
+    """The image as a float32 EXR a person opens in any viewer: the pixels that were scored, bit for bit
+    (half would round them, and refuses fireflies beyond 65504)."""
+    write_exr(path, {BEAUTY: image}, precision="float")
     return path
 
 
 def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
-             repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None) -> EvalResult:
-    """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and files.
+             repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None,
+             on_image: Callable[[ScoredImage], None] | None = None) -> EvalResult:
+    """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and EXRs.
 
-    `not_run` names methods the caller left out and why; the tables state it so a reader of the
-    report does not mistake a missing column for a forgotten one."""
+    `on_image` gets each test image's ScoredImage as soon as it is scored (the float images are
+    dropped after it returns). `not_run` names methods the caller left out and why; the tables state
+    it so a reader of the report does not mistake a missing column for a forgotten one."""
     _check_denoisers(denoisers)
     grouped = by_scene(images)
     out_dir = Path(out_dir)
     records, path_tracer, scenes = [], [], []
-    with _ProgressBar(sum(len(g) for g in grouped.values()) * len(denoisers), progress) as (bar, task):
+    with _ProgressBar(sum(len(g) for g in grouped.values()) * len(denoisers), progress) as bar:
         for scene_id, group in grouped.items():
-            folder = out_dir / "images" / scene_id
-            reference, floor = read_reference(group[0].reference_path)
-            scene = SceneImages(scene_id, _save(folder / "reference.npy", reference))
-            for test in sorted(group, key=lambda t: t.spp):
-                layers = read_exr(test.noisy_path)
-                noisy = noisy_color(layers)
-                if noisy.shape != reference.shape:
-                    raise EvalError(f"{test.noisy_path}: image is {noisy.shape[:2]}, its reference "
-                                    f"{test.reference_path} is {reference.shape[:2]}")
-                scene.inputs[test.spp] = _save(folder / f"spp{test.spp:04d}_input.npy", noisy)
-                path_tracer.append(_record(test, PATH_TRACER, "render (see sidecars)", noisy, reference, 0.0,
-                                           scene.inputs[test.spp], floor))
-                for denoiser in denoisers:
-                    bar.update(task, description=f"{denoiser.name} on {scene_id} @ {test.spp} spp")
-                    image, seconds = time_denoiser(denoiser, layers, repeats=repeats, warmup=warmup)
-                    saved = _save(folder / f"spp{test.spp:04d}_{denoiser.name}.npy", image)
-                    scene.outputs.setdefault(test.spp, {})[denoiser.name] = saved
-                    records.append(_record(test, denoiser.name, denoiser.device, image, reference, seconds, saved,
-                                           floor))
-                    bar.advance(task)
+            scene = SceneImages(scene_id, out_dir / "images" / scene_id / "reference.exr")
+            for scored in _scene(group, scene, denoisers, bar, repeats, warmup):
+                path_tracer.append(scored.records[PATH_TRACER])
+                records += [scored.records[d.name] for d in denoisers]
+                if on_image is not None:
+                    on_image(scored)
+            del scored  # the scene's last images go before the next scene's are read
             scenes.append(scene)
     devices = {d.name: d.device for d in denoisers}
     table = aggregate(records, devices)
@@ -88,6 +82,42 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
                         _reference_cost(images), sources)
     result.files = write_outputs(result, out_dir, repeats, warmup)
     return result
+
+
+def _scene(group: list[TestImage], scene: SceneImages, denoisers: list[Denoiser], bar: tuple[Progress, TaskID],
+           repeats: int, warmup: int) -> Iterator[ScoredImage]:
+    """One scene's test images by spp, each scored and written; the scene's paths go into `scene`. A
+    generator, so only this scene's images are alive, one test image (and the reference) at a time."""
+    reference, floor = read_reference(group[0].reference_path)
+    _write(scene.reference, reference)
+    for test in sorted(group, key=lambda t: t.spp):
+        scored = _score(test, reference, floor, denoisers, scene.reference.parent, bar, repeats, warmup)
+        scene.inputs[test.spp] = scored.records[PATH_TRACER].image
+        scene.outputs[test.spp] = {d.name: scored.records[d.name].image for d in denoisers}
+        yield scored
+
+
+def _score(test: TestImage, reference: np.ndarray, floor: float, denoisers: list[Denoiser], folder: Path,
+           bar: tuple[Progress, TaskID], repeats: int, warmup: int) -> ScoredImage:
+    """One test image: the noisy input and every denoiser's output, each written to `folder` and scored."""
+    layers = read_exr(test.noisy_path)
+    noisy = noisy_color(layers)
+    if noisy.shape != reference.shape:
+        raise EvalError(f"{test.noisy_path}: image is {noisy.shape[:2]}, its reference "
+                        f"{test.reference_path} is {reference.shape[:2]}")
+    stem = f"spp{test.spp:04d}"
+    records = {PATH_TRACER: _record(test, PATH_TRACER, "render (see sidecars)", noisy, reference, 0.0,
+                                    _write(folder / f"{stem}_input.exr", noisy), floor)}
+    outputs = {}
+    progress, task = bar
+    for denoiser in denoisers:
+        progress.update(task, description=f"{denoiser.name} on {test.scene_id} @ {test.spp} spp")
+        image, seconds = time_denoiser(denoiser, layers, repeats=repeats, warmup=warmup)
+        outputs[denoiser.name] = image
+        records[denoiser.name] = _record(test, denoiser.name, denoiser.device, image, reference, seconds,
+                                         _write(folder / f"{stem}_{denoiser.name}.exr", image), floor)
+        progress.advance(task)
+    return ScoredImage(test.scene_id, test.spp, reference, noisy, outputs, records)
 
 
 def _reference_cost(images: list[TestImage]) -> dict | None:
@@ -114,7 +144,7 @@ class _ProgressBar:
                                  TimeElapsedColumn(), disable=not enabled)
         self.task = self.progress.add_task("evaluating", total=total)
 
-    def __enter__(self):
+    def __enter__(self) -> tuple[Progress, TaskID]:
         self.progress.start()
         return self.progress, self.task
 

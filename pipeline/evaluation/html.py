@@ -2,7 +2,8 @@
 
 Everything is inside index.html: images and plots as base64 PNG data URIs, CSS and a little vanilla
 JS inline (the page, its CSS and JS are the package files in templates/), no fonts or scripts from
-the network, so the file can be mailed or archived as is. Table 1 comes as a Table1 object.
+the network, so the file can be mailed or archived as is. Table 1 comes as a Table1 object; each image
+comparison as a ReportGroup, which `report_group` encodes while the caller still holds the float images.
 
 Display rules (also printed on the page):
 - images are tone-mapped with clip(max(x, 0)^(1/2.2)) to 8 bit, no exposure change: the same display
@@ -52,11 +53,19 @@ class ReportImage:
     metrics: dict[str, dict[str, float]]  # denoiser name -> {"1-SSIM": .., "PSNR": .., "relMSE": ..}
 
 
+@dataclass(frozen=True)
+class ReportGroup:
+    """One ReportImage as the page shows it: its figures with the PNGs encoded, and its NaN/Inf notes.
+    Small, so a caller keeps these instead of the float images they were made from."""
+    body: str
+    notes: tuple[str, ...]
+
+
 def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions: dict[str, str],
-                 plots: list[Path], images: list[ReportImage], device: str, notes: list[str] = ()) -> Path:
-    """Write out_dir/index.html (header, Table 1, plots, image comparisons with zoom) and return its path."""
-    notes = list(notes)
-    groups = [_group_html(index, item, notes) for index, item in enumerate(images)]
+                 plots: list[Path], groups: list[ReportGroup], device: str, notes: list[str] = ()) -> Path:
+    """Write out_dir/index.html (header, Table 1, plots, the `report_group` image comparisons with zoom)
+    and return its path."""
+    notes = list(notes) + [note for group in groups for note in group.notes]
     page = _template("report.html").format(
         title=_esc(title),
         device=_esc(device),
@@ -66,7 +75,8 @@ def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions
         notes="\n".join(f"<li>{_esc(n)}</li>" for n in notes),
         table=table_html(table),
         plots="\n".join(_plot_html(Path(p)) for p in plots),
-        groups="\n".join(groups),
+        groups="\n".join(f'<section class="group" id="group-{index}">{group.body}</section>'
+                          for index, group in enumerate(groups)),
         css=_template("report.css"),
         js=_template("report.js"),
     )
@@ -184,9 +194,10 @@ def _figure(uri: str, caption: str, lines: list[str], size: tuple[int, int], *, 
             f'<div class="metrics">{extra}</div></figure>')
 
 
-def _group_html(index: int, item: ReportImage, notes: list[str]) -> str:
+def report_group(item: ReportImage) -> ReportGroup:
     """One scene at one spp: images with their metrics, heat maps under them, the legend; NaN/Inf go to notes."""
     _check(item)
+    notes = []
     reference = np.asarray(item.reference, dtype=np.float32)
     names = sorted(item.outputs, key=lambda n: n != "noisy")   # noisy first, then the given order
     size = embed_size(reference.shape)
@@ -209,10 +220,9 @@ def _group_html(index: int, item: ReportImage, notes: list[str]) -> str:
     height, width = reference.shape[:2]
     shown = f"{width}x{height}" if size == (width, height) else \
         f"{width}x{height}, embedded box-downscaled to {size[0]}x{size[1]}"
-    return (f'<section class="group" id="group-{index}"><h3>{_esc(item.scene_id)} &middot; {item.spp} spp '
-            f'<small>({shown})</small></h3>'
-            f'<div class="row">{"".join(images)}</div>'
-            f'<div class="row">{"".join(heats)}{_legend()}</div></section>')
+    return ReportGroup(f'<h3>{_esc(item.scene_id)} &middot; {item.spp} spp <small>({shown})</small></h3>'
+                       f'<div class="row">{"".join(images)}</div>'
+                       f'<div class="row">{"".join(heats)}{_legend()}</div>', tuple(notes))
 
 
 def _legend() -> str:

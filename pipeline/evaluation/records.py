@@ -1,7 +1,8 @@
 """What an evaluation produces, as data: one ImageRecord per (image, method), Table 1's rows, the result.
 
 Every output (Markdown, CSV, JSON, the plot, the HTML page) is rendered from these objects; nothing is
-parsed back from a file that was written.
+parsed back from a file that was written. The float images themselves live only in a ScoredImage, one
+test image at a time; what stays behind are the paths of the EXRs they were written to.
 """
 from __future__ import annotations
 
@@ -63,7 +64,7 @@ class ImageRecord:
     nonfinite: int            # NaN/inf values in the method's image, replaced by 0 before scoring
     render_seconds: float
     denoise_seconds: float
-    image: Path               # .npy of the (H, W, 3) float32 linear image
+    image: Path               # the scored image as a float32 EXR (plain R, G, B), under out_dir/images/
     reference_floor: float = math.nan  # the reference's own expected relMSE (metrics.reference_floor)
 
     @property
@@ -92,9 +93,21 @@ class TableRow:
     relmse_minus_floor: float = math.nan    # mean over images of relMSE - reference floor
 
 
+@dataclass(frozen=True)
+class ScoredImage:
+    """One test image (a scene at one spp) just scored: its float images, handed to evaluate()'s `on_image`
+    while they are in memory, so a caller makes figures without reading files back."""
+    scene_id: str
+    spp: int
+    reference: np.ndarray               # (H, W, 3) float32 linear
+    noisy: np.ndarray                   # the path tracer's image (the denoisers' input colour)
+    outputs: dict[str, np.ndarray]      # denoiser name -> its image, in the order evaluated
+    records: dict[str, ImageRecord]     # PATH_TRACER and every denoiser name -> its scores
+
+
 @dataclass
 class SceneImages:
-    """Where the report finds one scene's linear images (float32 .npy, (H, W, 3))."""
+    """Where a person finds one scene's linear images: float32 EXRs, each the image as it was scored."""
     scene_id: str
     reference: Path
     inputs: dict[int, Path] = field(default_factory=dict)                 # spp -> noisy input
