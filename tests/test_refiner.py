@@ -131,3 +131,14 @@ def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn(store_with_b
     # the log transform and its inverse round trip in float32
     np.testing.assert_allclose(out.diffuse, bases["diffuse"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(out.specular, bases["specular"], rtol=1e-5, atol=1e-6)
+
+
+def test_fine_tuning_refuses_weights_of_the_other_base():
+    from admc.errors import TrainingError
+    from admc.model.resume import load_init
+    from admc.pipeline.train_stage import shipped_weights
+
+    model = load_config(None, []).model
+    noisy_weights = shipped_weights(model)
+    with pytest.raises(TrainingError, match=r"model.base = 'noisy', this config has model.base = 'oidn'"):
+        load_init(noisy_weights, dataclasses.replace(model, base="oidn"))
