@@ -245,7 +245,8 @@ def place(rng: np.random.Generator, size, view, footprint: float, height: float,
         x = rng.uniform(-w / 2 + footprint + 0.05, w / 2 - footprint - 0.05)
         z = rng.uniform(-d / 2 + footprint + 0.05, d / 2 - footprint - 0.05)
         local = rotation @ (np.array([x, height / 2, z]) - eye)
-        seen = local[2] > 1.2 and max(abs(local[0]), abs(local[1])) < 0.8 * tan_half * local[2]
+        near = 1.2 + max(footprint, height / 2)  # a big object further away: none fills the frame
+        seen = local[2] > near and max(abs(local[0]), abs(local[1])) < 0.8 * tan_half * local[2]
         if seen and all(math.hypot(x - px, z - pz) > footprint + pf + 0.05 for px, pz, pf in taken):
             taken.append((x, z, footprint))
             return np.array([x, 1e-3, z])  # just above the floor: no surface coincides with it
