@@ -42,8 +42,8 @@ def triple(values) -> str:
 
 
 def add(parent: ET.Element, tag: str, name: str, value) -> None:
-    """A typed property: <float name=... value=...>, <rgb ...>, <string ...>, <integer ...>, <boolean ...>."""
-    text = {"float": number, "rgb": triple, "string": str, "integer": str}.get(tag, str)(value)
+    """A typed property: <float name=... value=...>, <rgb ...>, <string ...> or <integer ...>."""
+    text = {"float": number, "rgb": triple}.get(tag, str)(value)
     ET.SubElement(parent, tag, name=name, value=text)
 
 
@@ -130,7 +130,7 @@ class Scene:
         self.specular |= any(b.get("type") not in ("diffuse", "twosided") for b in bsdf.iter("bsdf"))
         return name
 
-    def shape(self, kind: str, bsdf: str, to_world: np.ndarray | None = None, emitter=None, **points) -> ET.Element:
+    def shape(self, kind: str, bsdf: str, to_world: np.ndarray | None = None, emitter=None, **points) -> None:
         shape = ET.SubElement(self.root, "shape", type=kind)
         if to_world is not None:
             add_matrix(shape, to_world)
@@ -142,7 +142,6 @@ class Scene:
         ET.SubElement(shape, "ref", id=bsdf)
         if emitter is not None:
             shape.append(emitter)
-        return shape
 
 
 def walls(rng: np.random.Generator, scene: Scene, size, diffuse_only: bool) -> None:
