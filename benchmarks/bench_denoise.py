@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from admc.model.generator import Generator
-from admc.model.inference import FullImageDenoiser, receptive_radius
+from admc.model.inference import FullImageDenoiser
+from admc.model.tiling import receptive_radius
 from admc.model.precision import PRECISIONS, resolve_precision
 from admc.model.settings import paper_settings, small_settings
 from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,

@@ -1,13 +1,7 @@
 """Denoise whole images of any size with the two trained branches, tile by tile where they are large.
 
-Large images run in tiles so CPU memory stays bounded. Each tile's network input is its core region
-plus a halo as wide as the network's receptive field radius (see `receptive_radius`); only the core
-of the output is kept. Every kept pixel then sees exactly the inputs it sees in an untiled run, so a
-tiled image equals the untiled one up to float rounding: no seams, and no blending window is needed.
-
-No padding is added by the denoiser: crops are taken inside the image (shifted inwards at its
-borders), so at the image border the network's own (replicate) padding applies just as in an untiled
-run and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
+Large images run in tiles so CPU memory stays bounded; tiling.py makes the tiled result equal the
+untiled one (no seams).
 
 A refiner (generators with config.base = "oidn") first runs OIDN per branch on the whole image
 (oidn_base.oidn_bases, as tiling did for its training rows), then corrects OIDN's output tile by tile:
@@ -28,6 +22,7 @@ from admc.common.diff import differing_keys
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
 from .precision import autocast_for, memory_format_for, resolve_precision
+from .tiling import receptive_radius, run_tiled
 from .transforms import (
     EPS,
     RADIANCE_MAX,
@@ -49,56 +44,6 @@ LOG_MAX = {
     "diffuse": float(np.log1p(RADIANCE_MAX / EPS)),
     "specular": float(np.log1p(RADIANCE_MAX)),
 }
-
-
-def receptive_radius(generator: Generator) -> int:
-    """How many pixels away an input can still change an output pixel of `generator` (see its
-    `receptive_radius` method: 36 for the paper's residual body, a 73x73 receptive field)."""
-    if not isinstance(generator, Generator):
-        raise TypeError(f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
-                        f"pass overlap= explicitly for other modules")
-    return generator.receptive_radius()
-
-
-def axis_windows(size: int, tile: int, halo: int, align: int = 1) -> list[tuple[int, int, int, int]]:
-    """(core_start, core_end, crop_start, crop_end) along one axis.
-
-    Cores split [0, size) into ceil(size / tile) near-equal parts (balanced, so no sliver tile).
-    Every crop has the same length, min(size, longest core + 2 * halo), so tiles can be batched, and
-    is shifted inwards at the image borders; each core then has `halo` pixels of real image on every
-    side that is not the image border. With `align` > 1 (a multi-scale generator) each crop's start
-    is then moved down to a multiple of `align`, so the network sees the untiled image's pixel grid;
-    crops grow by less than `align`.
-    """
-    if size < 1 or tile < 1 or halo < 0 or align < 1:
-        raise ValueError(f"axis_windows: need size >= 1, tile >= 1, halo >= 0, align >= 1; got {size}, {tile}, "
-                         f"{halo}, {align}")
-    count = math.ceil(size / tile)
-    bounds = [round(i * size / count) for i in range(count + 1)]
-    crop = min(size, max(b - a for a, b in zip(bounds, bounds[1:])) + 2 * halo)
-    windows = []
-    for start, end in zip(bounds, bounds[1:]):
-        crop_start = min(max(start - halo, 0), size - crop)
-        windows.append((start, end, crop_start - crop_start % align, crop_start + crop))
-    return windows
-
-
-def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
-              base: Tensor | None = None) -> Tensor:
-    """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
-
-    With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
-    untiled call up to float rounding.
-    """
-    _, _, height, width = noisy.shape
-    out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
-    for y0, y1, cy0, cy1 in axis_windows(height, tile, halo, align):
-        for x0, x1, cx0, cx1 in axis_windows(width, tile, halo, align):
-            window = (..., slice(cy0, cy1), slice(cx0, cx1))
-            extra = () if base is None else (base[window],)
-            crop = generator(noisy[window], feats[window], *extra)
-            out[..., y0:y1, x0:x1] = crop[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
-    return out
 
 
 @dataclass

@@ -16,7 +16,8 @@ from scipy.ndimage import maximum_filter
 
 from admc.common.metrics import one_minus_ssim
 from admc.model.generator import Generator
-from admc.model.inference import FullImageDenoiser, load_denoiser, receptive_radius
+from admc.model.inference import FullImageDenoiser, load_denoiser
+from admc.model.tiling import receptive_radius
 from admc.model.settings import ModelSettings
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color

@@ -5,14 +5,8 @@ import torch
 from torch import nn
 
 from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
-from admc.model.inference import (
-    LOG_MAX,
-    MISSING_DEPTH,
-    FullImageDenoiser,
-    axis_windows,
-    receptive_radius,
-    run_tiled,
-)
+from admc.model.inference import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
+from admc.model.tiling import axis_windows, receptive_radius, run_tiled
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

@@ -8,7 +8,8 @@ from torch import nn
 
 from admc.model.branch import BranchTrainer
 from admc.model.generator import Generator, GeneratorConfig, build_generator, scaled_kaiming_
-from admc.model.inference import FullImageDenoiser, load_denoiser, receptive_radius, run_tiled
+from admc.model.inference import FullImageDenoiser, load_denoiser
+from admc.model.tiling import receptive_radius, run_tiled
 from admc.model.settings import ModelSettings, TrainSettings
 from admc.model.transforms import transform_spec
 from admc.model.unet import UNetGenerator

@@ -92,6 +92,29 @@ def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
     return x16
 
 
+def _level_images(layers: dict[str, np.ndarray], reference: dict[str, np.ndarray],
+                  oidn_base: bool) -> dict[str, np.ndarray]:
+    """One spp level's whole images in the store's transforms, (H, W, C) per row array.
+
+    The reference diffuse is demodulated by this level's own albedo, the one inference has, so
+    expm1(output) * (noisy albedo + eps) targets the reference radiance exactly even where a low-spp
+    albedo estimate is noisy (rough plastic, texture edges): one reference entry per row.
+    """
+    albedo = layers["albedo"]
+    images = {"noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),
+              "ref_diffuse": tf.diffuse_forward(reference["diffuse"], albedo),
+              "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"])}
+    if "specular" in reference:
+        images["noisy_specular"] = tf.specular_forward(layers["specular"])
+        images["ref_specular"] = tf.specular_forward(reference["specular"])
+    if oidn_base:
+        bases = oidn_bases(layers)
+        images["base_diffuse"] = tf.diffuse_forward(bases["diffuse"], albedo)
+        if "specular" in bases and "specular" in reference:
+            images["base_specular"] = tf.specular_forward(bases["specular"])
+    return images
+
+
 def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
                seed: int, oidn_base: bool = False) -> dict:
@@ -109,38 +132,17 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
     origins = choose_crops(importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size,
                            candidates_per_crop, rng)
-    # One crop entry per row: the reference diffuse is demodulated by the *row's* albedo, the one
-    # inference has, so expm1(output) * (noisy albedo + eps) targets the reference radiance exactly
-    # even where a low-spp albedo estimate is noisy (rough plastic, texture edges).
-    rows: dict[str, list] = {name: [] for name in ("noisy_diffuse", "noisy_specular", "features", "ref_diffuse",
-                                                   "ref_specular", "base_diffuse", "base_specular", "spp",
-                                                   "origin")}
-    ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
+    rows: dict[str, list] = {}
     for key in spp_inputs:
-        layers = noisy[key]
-        rows["noisy_diffuse"].append(_crops(tf.diffuse_forward(layers["diffuse"], layers["albedo"]),
-                                            origins, patch_size))
-        rows["ref_diffuse"].append(_crops(tf.diffuse_forward(reference["diffuse"], layers["albedo"]),
-                                          origins, patch_size))
-        if has_specular:
-            rows["noisy_specular"].append(_crops(tf.specular_forward(layers["specular"]), origins, patch_size))
-            rows["ref_specular"].append(_crops(ref_specular, origins, patch_size))
-        if oidn_base:
-            bases = oidn_bases(layers)
-            rows["base_diffuse"].append(_crops(tf.diffuse_forward(bases["diffuse"], layers["albedo"]),
-                                               origins, patch_size))
-            if has_specular:
-                rows["base_specular"].append(_crops(tf.specular_forward(bases["specular"]), origins, patch_size))
-        feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
-        rows["features"].append(_crops(feats, origins, patch_size))
-        rows["spp"].append(np.full(len(origins), int(key[3:]), dtype=np.int32))
-        rows["origin"].append(origins)
+        for name, image in _level_images(noisy[key], reference, oidn_base).items():
+            rows.setdefault(name, []).append(_crops(image, origins, patch_size))
+        rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
+        rows.setdefault("origin", []).append(origins)
     clamped: dict = {}
     arrays = {}
     for name, parts in rows.items():
-        if parts:
-            joined = np.concatenate(parts)
-            arrays[name] = joined if name in ("spp", "origin") else _fp16(name, joined, clamped)
+        joined = np.concatenate(parts)
+        arrays[name] = joined if name in ("spp", "origin") else _fp16(name, joined, clamped)
     arrays["crop"] = np.arange(len(arrays["spp"]), dtype=np.int32)
 
     stats = {name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
