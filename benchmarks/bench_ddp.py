@@ -19,7 +19,8 @@ from pathlib import Path
 
 
 from admc.model import distributed
-from admc.model.trainer import resolve_device, train
+from admc.model.precision import resolve_device
+from admc.model.trainer import train
 from admc.pipeline.config import load_config
 from admc.pipeline.stages import build_dataset
 from admc.pipeline.render.variants import use_variant

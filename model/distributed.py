@@ -25,7 +25,7 @@ import os
 import socket
 import threading
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 import torch.distributed as dist
@@ -33,7 +33,10 @@ import torch.multiprocessing as mp
 from torch._utils import _flatten_dense_tensors, _unflatten_dense_tensors
 from tqdm import tqdm
 
-from admc.errors import AdmcError, DeviceError
+from admc.errors import AdmcError, DeviceError, TrainingError
+
+if TYPE_CHECKING:
+    from .settings import ModelSettings, TrainSettings
 
 
 class RankFailed(AdmcError, RuntimeError):
@@ -206,3 +209,15 @@ def _drain(queue) -> list[tuple]:
     while not queue.empty():
         items.append(queue.get())
     return items
+
+
+def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> None:
+    """What `world` training processes need: a global batch that splits evenly, and no batch norm in the
+    critic (its statistics would cover each process's slice, not the batch one process normalises over)."""
+    if settings.batch_size % world:
+        raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
+                            f"split across {world} training processes; use a multiple of {world}")
+    if world > 1 and model.critic_norm == "batch":
+        raise TrainingError(f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
+                            "training processes' slices of the batch, not over the whole batch; use \"layer\" "
+                            "(the default) or \"none\", or train in one process")

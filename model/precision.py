@@ -1,4 +1,4 @@
-"""Which float precision the networks run in, and the autocast / memory layout that goes with it.
+"""Which device and float precision the networks run in, and the autocast / memory layout that goes with it.
 
 bfloat16 autocast keeps float32 master weights, optimiser states and (in losses.py) the losses and
 the gradient penalty; only conv/linear arithmetic runs in bf16, which has float32's exponent range,
@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 
 import torch
+
+from admc.errors import DeviceError
 
 PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
@@ -47,3 +49,20 @@ def autocast_for(device: torch.device, dtype: torch.dtype) -> contextlib.Abstrac
 def memory_format_for(device: torch.device, dtype: torch.dtype) -> torch.memory_format:
     """channels_last for bf16 (oneDNN's fast layout) and on CUDA; NCHW for float32 on the CPU."""
     return torch.channels_last if device.type == "cuda" or dtype != torch.float32 else torch.contiguous_format
+
+
+def resolve_device(name: str) -> torch.device:
+    """auto | cpu | cuda | cuda:N as a torch device this machine has; DeviceError naming the value otherwise."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise DeviceError(f"device {name!r}: not a device admc runs on; use auto, cpu, cuda or cuda:N")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise DeviceError(f"device {name!r}: requested, but torch sees no CUDA device on this machine")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise DeviceError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device

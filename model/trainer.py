@@ -21,17 +21,17 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from admc.errors import AdmcError, DeviceError, TrainingError
+from admc.errors import AdmcError, TrainingError
 from admc.stores.checkpoints import export_weights, load_checkpoint, save_checkpoint
 from admc.stores import patches
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from .branch import BranchTrainer
-from .distributed import RankFailed, Ranks, broadcast_modules, current, rank_device
+from .distributed import RankFailed, Ranks, broadcast_modules, check_world, current, rank_device
 from .data import branch_seed, load_rows, train_loader
 from .metrics_log import MetricsLog
 from .selection import SELECTION_METRIC, BestNetworks
-from .precision import precision_name
+from .precision import precision_name, resolve_device
 from .progress import ProgressWindow
 from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
                      set_rng_state)
@@ -62,23 +62,6 @@ class TrainResult:
     notes: list[str] = field(default_factory=list)  # what the run has to say and has not shown yet
     selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
     rank: int = 0  # the process that returns it; only rank 0's speaks for the run
-
-
-def resolve_device(name: str) -> torch.device:
-    """auto | cpu | cuda | cuda:N as a torch device this machine has; DeviceError naming the value otherwise."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    try:
-        device = torch.device(name)
-    except (RuntimeError, ValueError):
-        device = None
-    if device is None or device.type not in ("cpu", "cuda"):
-        raise DeviceError(f"device {name!r}: not a device admc runs on; use auto, cpu, cuda or cuda:N")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError(f"device {name!r}: requested, but torch sees no CUDA device on this machine")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise DeviceError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
-    return device
 
 
 def _open_reader(run: _Run, split: str, transform: dict, branch: str, source: str) -> PatchReader:
@@ -116,18 +99,6 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
         broadcast_modules(trainer.generator, trainer.critic)
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
-
-
-def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> None:
-    """What `world` training processes need: a global batch that splits evenly, and no batch norm in the
-    critic (its statistics would cover each process's slice, not the batch one process normalises over)."""
-    if settings.batch_size % world:
-        raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
-                            f"split across {world} training processes; use a multiple of {world}")
-    if world > 1 and model.critic_norm == "batch":
-        raise TrainingError(f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
-                            "training processes' slices of the batch, not over the whole batch; use \"layer\" "
-                            "(the default) or \"none\", or train in one process")
 
 
 @dataclass

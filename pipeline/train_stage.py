@@ -10,7 +10,9 @@ import admc
 from admc.model.inference import FullImageDenoiser, load_denoiser
 from admc.model.settings import ModelSettings
 from admc.model import distributed
-from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_world, resolve_device, train
+from admc.model.distributed import check_world
+from admc.model.precision import resolve_device
+from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import stage as render
