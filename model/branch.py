@@ -63,6 +63,7 @@ class BranchTrainer:
         self.memory_format = memory = memory_format_for(device, self.dtype)
         self.generator = build_generator(model.generator_config()).to(device, memory_format=memory)
         self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
+        self.patch_size = patch_size
         lr = settings.lr_g(branch)
         groups = self.generator.parameter_groups()
         self.optimizers = {
@@ -181,6 +182,9 @@ class BranchTrainer:
         self.bad_consecutive = state["bad_consecutive"]
 
     def load_networks(self, generator: dict[str, Tensor], critic: dict[str, Tensor], source: str) -> None:
-        """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs."""
-        for name, net, sd in (("generator", self.generator, generator), ("critic", self.critic, critic)):
-            load_network(net, sd, f"{source}: {self.branch} {name}", "the configured architecture")
+        """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs (the
+        critic's classifier is sized for the patch, so a patch size change shows there)."""
+        load_network(self.generator, generator, f"{source}: {self.branch} generator", "the configured architecture")
+        load_network(self.critic, critic, f"{source}: {self.branch} critic",
+                     f"the configured architecture at tile.patch_size = {self.patch_size} (the critic's "
+                     "classifier is sized for the patch it was trained on)")

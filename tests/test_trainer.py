@@ -330,3 +330,11 @@ def test_settings_check_names_the_field():
         dataclasses.replace(SETTINGS, precision="float16").check()
     phases = [SETTINGS.phase(s) for s in range(5)]
     assert phases == ["l1", "l1", "critic", "adversarial", "adversarial"]
+
+
+def test_weights_from_another_patch_size_name_tile_patch_size():
+    settings = dataclasses.replace(SETTINGS, steps=1)
+    trained = BranchTrainer("diffuse", TINY, settings, 64, torch.device("cpu"))
+    other = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
+    with pytest.raises(CheckpointError, match=r"diffuse critic weights do not fit .* tile.patch_size = 32"):
+        other.load_networks(trained.generator.state_dict(), trained.critic.state_dict(), "w.pt")
