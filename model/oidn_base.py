@@ -11,6 +11,8 @@ training and denoising see identical bases.
 """
 from __future__ import annotations
 
+from importlib.metadata import version
+
 import numpy as np
 
 QUALITY = "high"
@@ -18,10 +20,7 @@ QUALITY = "high"
 
 def describe() -> dict:
     """What produced the bases, stored with them (a later OIDN version gives other bases)."""
-    import pyoidn
-
-    return {"method": "oidn", "quality": QUALITY, "per_branch": True,
-            "pyoidn": getattr(pyoidn, "__version__", "unknown")}
+    return {"method": "oidn", "quality": QUALITY, "per_branch": True, "pyoidn": version("pyoidn")}
 
 
 def _contiguous(image: np.ndarray) -> np.ndarray:
