@@ -162,17 +162,27 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
         return  # under torchrun, rank 0 reports the run
     for note in result.notes:
         console.print(note, markup=False)
-    table = Table(title=f"{stage.value}: step {result.step}")
+    if result.last_losses:
+        console.print(_train_table(stage.value, result))
+    else:  # the checkpoint already held every step: say so rather than print an empty table
+        chosen = ", ".join(f"{b} step {s['step']} (val relMSE {s['val_relmse']:.4g})" for b, s in result.selected.items())
+        console.print(f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps to train "
+                      f"longer)" + (f"; the weights hold {chosen}" if chosen else ""), markup=False)
+    if result.skipped_branches:
+        console.print(f"skipped branches (no patches): {', '.join(result.skipped_branches)}")
+    console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")
+
+
+def _train_table(stage: str, result) -> Table:
+    """The run's last losses and validation per branch."""
+    table = Table(title=f"{stage}: step {result.step}")
     for column in ("branch", "last losses", "validation"):
         table.add_column(column)
     for branch in result.branches:
         losses = ", ".join(f"{k} {v:.4g}" for k, v in result.last_losses.get(branch, {}).items())
         val = ", ".join(f"{k} {v:.4g}" for k, v in result.validation.get(branch, {}).items())
         table.add_row(branch, losses, val)
-    console.print(table)
-    if result.skipped_branches:
-        console.print(f"skipped branches (no patches): {', '.join(result.skipped_branches)}")
-    console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")
+    return table
 
 
 WeightsOpt = Annotated[Optional[Path], typer.Option(

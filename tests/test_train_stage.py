@@ -61,6 +61,7 @@ def test_rerun_is_a_no_op_and_more_steps_resume(pretrained):
     out = cli("train", "--stage", "pretrain", *flags(settings(workdir)))
     assert out.returncode == 0, out.stderr
     assert load_checkpoint(checkpoint)["step"] == 4
+    assert "pretrain: complete at step 4, nothing to train" in out.stdout and "last losses" not in out.stdout
     out = cli("train", "--stage", "pretrain", *flags(settings(workdir, steps=6)))
     assert out.returncode == 0, out.stderr
     assert "resuming pretrain" in out.stdout
