@@ -3,11 +3,12 @@ random weights (speed does not depend on them), the paper's and the default (sma
 on the same image and device, the baselines the evaluation compares against (Intel OIDN; NVIDIA
 OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
-    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small]
+    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn]
         [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 0]
         [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
-small and paper are the [model] of configs/default.toml and configs/paper.toml. Each timed run is one
+small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
+admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first. Each timed run is one
 FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with the
 copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import copy
 import statistics
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -35,6 +37,7 @@ from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDen
 CONFIGS = {
     "paper": paper_settings()[0].generator_config(),
     "small": small_settings()[0].generator_config(),
+    "small+oidn": replace(small_settings()[0], base="oidn").generator_config(),
 }
 
 
