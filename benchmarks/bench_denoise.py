@@ -4,7 +4,7 @@ on the same image and device, the baselines the evaluation compares against (Int
 OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
     .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn]
-        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 0]
+        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 512]
         [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
@@ -13,8 +13,9 @@ FullImageDenoiser call; "network" is the generators' share (synchronised: on CUD
 copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
-with AVX512-BF16 or AMX). --tile 0 runs the image in one piece; a positive --tile runs it in tiles
-with the receptive-field halo.
+with AVX512-BF16 or AMX). --tile 512 (the default) runs the image in tiles with the receptive-field
+halo, as `admc-pipe denoise` and eval do; --tile 0 runs it in one piece, which on the 2-core CPU is
+about twice as slow at 1280x720 (whole-image convs leave the caches).
 """
 from __future__ import annotations
 
@@ -116,7 +117,8 @@ def main() -> None:
     parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
                         help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--tile", type=int, default=0, help="largest tile core edge; 0: no tiling")
+    parser.add_argument("--tile", type=int, default=512,
+                        help="largest tile core edge (default: the denoiser's own, 512); 0: no tiling")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--warmup", type=int, default=1, help="untimed runs per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
