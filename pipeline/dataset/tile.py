@@ -92,9 +92,10 @@ def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
     return x16
 
 
-def _level_images(layers: dict[str, np.ndarray], reference: dict[str, np.ndarray],
+def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_specular: np.ndarray | None,
                   oidn_base: bool) -> dict[str, np.ndarray]:
-    """One spp level's whole images in the store's transforms, (H, W, C) per row array.
+    """One spp level's whole images in the store's transforms, (H, W, C) per row array. `ref_diffuse` is
+    linear; `ref_specular` is already transformed (it does not depend on the level), None without specular.
 
     The reference diffuse is demodulated by this level's own albedo, the one inference has, so
     expm1(output) * (noisy albedo + eps) targets the reference radiance exactly even where a low-spp
@@ -102,15 +103,15 @@ def _level_images(layers: dict[str, np.ndarray], reference: dict[str, np.ndarray
     """
     albedo = layers["albedo"]
     images = {"noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),
-              "ref_diffuse": tf.diffuse_forward(reference["diffuse"], albedo),
+              "ref_diffuse": tf.diffuse_forward(ref_diffuse, albedo),
               "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"])}
-    if "specular" in reference:
+    if ref_specular is not None:
         images["noisy_specular"] = tf.specular_forward(layers["specular"])
-        images["ref_specular"] = tf.specular_forward(reference["specular"])
+        images["ref_specular"] = ref_specular
     if oidn_base:
         bases = oidn_bases(layers)
         images["base_diffuse"] = tf.diffuse_forward(bases["diffuse"], albedo)
-        if "specular" in bases and "specular" in reference:
+        if ref_specular is not None and "specular" in bases:
             images["base_specular"] = tf.specular_forward(bases["specular"])
     return images
 
@@ -132,9 +133,10 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
     origins = choose_crops(importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size,
                            candidates_per_crop, rng)
+    ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
-        for name, image in _level_images(noisy[key], reference, oidn_base).items():
+        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular, oidn_base).items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
         rows.setdefault("origin", []).append(origins)
