@@ -246,26 +246,24 @@ class Generator(nn.Module):
         """`features` (normal, depth, albedo; 7 channels) may be omitted only in mode "none"; `base` is
         given exactly when the generator refines (config.base = "oidn")."""
         self._check_inputs(noisy, features, base)
-        if base is not None:
-            return self._refine(noisy, features, base)
-        x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else noisy
-        cond = self.encoder(features) if self.encoder is not None else None
+        # What the output corrects: the noisy input, or a refiner's base (which sees the noisy input
+        # through the encoder instead).
+        start = noisy if base is None else base
+        x = torch.cat([noisy, features], dim=1) if self.config.mode == "concat" else start
+        if self.encoder is None:
+            cond = None
+        else:
+            cond = self.encoder(features if base is None else torch.cat([features, noisy], dim=1))
         out = self._body(self.head(x), cond)
-        # Predict a correction of the (log-domain) input with input_skip: an untrained network passes
-        # the noisy input through, so short CPU trainings improve on it instead of re-learning it.
-        out = self.tail[:-1](out) if self.config.input_skip else self.tail(out)
+        # Predict a correction of the (log-domain) start with input_skip (always for a refiner): an
+        # untrained network passes it through, so short CPU trainings improve on it instead of re-learning it.
+        skip = self.config.input_skip or self.config.refines
+        out = self.tail[:-1](out) if skip else self.tail(out)
         # Darkness gate: where no input radiance lies within the receptive radius the network sees no
         # light at all, yet its biases and the CFM shift of the features still add a constant (a tint
-        # over a black background). Such pixels keep their input, zero: this hides no light it saw.
+        # over a black background). Such pixels keep their start (zero, or the base): this hides no light it saw.
         out = torch.where(light_within(noisy, self.gate_radius), out, 0.0)
-        return torch.relu(noisy + out) if self.config.input_skip else out
-
-    def _refine(self, noisy: Tensor, features: Tensor, base: Tensor) -> Tensor:
-        """ReLU(base + correction); the darkness gate as in `forward` (no light seen: the base)."""
-        cond = self.encoder(torch.cat([features, noisy], dim=1))
-        out = self.tail[:-1](self._body(self.head(base), cond))
-        out = torch.where(light_within(noisy, self.gate_radius), out, 0.0)
-        return torch.relu(base + out)
+        return torch.relu(start + out) if skip else out
 
     def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
         f = head
