@@ -138,10 +138,22 @@ def train_loader(reader: PatchReader, batch_size: int, seed: int, start_batch: i
                       prefetch_factor=2 if num_workers > 0 else None)
 
 
+def spread_rows(length: int, n: int) -> list[int]:
+    """min(n, length) row indices evenly spaced over 0..length-1, first and last included.
+
+    Rows are stored scene by scene, so the first n rows of a large split are one or two scenes;
+    evenly spaced rows take from every scene once n reaches the number of scenes.
+    """
+    count = min(n, length)
+    if count <= 1:
+        return list(range(count))
+    return [round(k * (length - 1) / (count - 1)) for k in range(count)]
+
+
 def load_rows(reader: PatchReader, n: int) -> dict[str, torch.Tensor]:
-    """The first min(n, len) rows, unaugmented, stacked: a fixed validation set."""
-    count = min(n, len(reader))
-    if count == 0:
+    """min(n, len) rows spread evenly over the split (spread_rows), unaugmented, stacked: a fixed
+    validation set."""
+    if len(reader) == 0:
         raise ValueError(f"{reader.path}: split {reader.split!r} has no {reader.branch} patches")
-    items = [reader[i] for i in range(count)]
+    items = [reader[i] for i in spread_rows(len(reader), n)]
     return {key: torch.from_numpy(np.stack([item[key] for item in items])) for key in IMAGE_KEYS if key in items[0]}

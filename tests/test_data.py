@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from conftest import build_tiny_store
-from admc.model.data import N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, train_loader
+from admc.model.data import N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, spread_rows, train_loader
 from admc.stores.patches import PatchReader, fingerprint as store_fingerprint
 
 
@@ -149,7 +149,22 @@ def test_loader_batches_do_not_depend_on_workers(store):
 def test_validation_rows_and_fingerprint(store):
     rows = load_rows(PatchReader(store, "val"), 5)
     assert rows["features"].shape == (5, 7, 32, 32)
+    reader = PatchReader(store, "train")
+    scenes = {reader.locate(i)[0] for i in range(len(reader))}
+    assert len(scenes) >= 2  # the test can fail: the first rows would all be one scene's
+    picked = spread_rows(len(reader), len(scenes))
+    assert {reader.locate(i)[0] for i in picked} == scenes
+    np.testing.assert_array_equal(load_rows(reader, len(scenes))["noisy"][-1], reader[len(reader) - 1]["noisy"])
     with pytest.raises(ValueError, match="split 'test' has no diffuse patches"):
         load_rows(PatchReader(store, "test"), 5)
     assert store_fingerprint(store) == store_fingerprint(store)
     assert len(store_fingerprint(store)) == 64
+
+
+def test_spread_rows_are_evenly_spaced_and_never_repeat():
+    assert spread_rows(10, 4) == [0, 3, 6, 9]
+    assert spread_rows(3, 5) == [0, 1, 2]
+    assert spread_rows(7, 1) == [0]
+    assert spread_rows(0, 5) == []
+    picked = spread_rows(1000, 64)
+    assert len(set(picked)) == 64 and picked[-1] == 999
