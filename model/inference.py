@@ -6,6 +6,8 @@ untiled one (no seams).
 A refiner (generators with config.base = "oidn") first runs OIDN per branch on the whole image
 (oidn_base.oidn_bases, as tiling did for its training rows), then corrects OIDN's output tile by tile:
 one call, and its time includes OIDN's.
+
+A dim image is scaled up for the networks and its output scaled back (exposure.py).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from torch import Tensor, nn
 
 from admc.common.diff import differing_keys
 
+from .exposure import exposure_gain
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
 from .precision import autocast_for, memory_format_for, resolve_precision
@@ -60,6 +63,7 @@ class DenoiseResult:
     tiles: int = 1                       # network calls per branch
     network_seconds: float = 0.0         # generator time, synchronised (both branches)
     base_seconds: float = 0.0            # OIDN's time for a refiner's bases (0 for base "noisy")
+    exposure_gain: float = 1.0           # the radiance went through the networks times this (exposure.py)
     seconds: float = 0.0                 # whole call: sanitising, OIDN, transforms, networks, inverse
 
     @property
@@ -73,6 +77,8 @@ class DenoiseResult:
             notes.append("specular: no specular network given, the noisy specular was added unchanged")
         if self.nonfinite_outputs:
             notes.append(f"the network produced {self.nonfinite_outputs} non-finite value(s), set to 0")
+        if self.exposure_gain != 1.0:
+            notes.append(f"a dim image: denoised at {self.exposure_gain:.3g}x its exposure, the output scaled back")
         return notes
 
 
@@ -95,13 +101,15 @@ class FullImageDenoiser:
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables). `base` is what the generators correct:
-    "noisy", or "oidn" for refiners (then OIDN runs first, inside the call).
+    "noisy", or "oidn" for refiners (then OIDN runs first, inside the call). `normalize_exposure`
+    scales dim images up for the networks (exposure.py); False is the measurement without it.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
                  tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
-                 compile: bool = False, name: str = "admc", source: str | None = None) -> None:
+                 compile: bool = False, name: str = "admc", source: str | None = None,
+                 normalize_exposure: bool = True) -> None:
         if tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         self.torch_device = torch.device(device)
@@ -128,6 +136,7 @@ class FullImageDenoiser:
         self.overlap = overlap
         self.device = _device_description(self.torch_device)
         self.name, self.source = name, source
+        self.normalize_exposure = normalize_exposure
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         return generator.to(self.torch_device, memory_format=self.memory_format).eval()
@@ -144,13 +153,16 @@ class FullImageDenoiser:
         start = time.perf_counter()
         clean, sanitized = sanitize_layers(layers)
         albedo = clean["albedo"]
-        inputs = {"diffuse": diffuse_forward(clean["diffuse"], albedo)}
         run_specular = "specular" in clean and "specular" in self.generators
+        radiance = clean["diffuse"] + clean["specular"] if "specular" in clean else clean["diffuse"]
+        gain = exposure_gain(radiance) if self.normalize_exposure else 1.0
+        exposed = {**clean, **{name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}}
+        inputs = {"diffuse": diffuse_forward(exposed["diffuse"], albedo)}
         if run_specular:
-            inputs["specular"] = specular_forward(clean["specular"])
+            inputs["specular"] = specular_forward(exposed["specular"])
         feats = self._tensor(features(clean["normal"], clean["depth"], albedo, clean["coverage"]))
         base_start = time.perf_counter()
-        bases = self._bases(clean, albedo, tuple(inputs))
+        bases = self._bases(exposed, albedo, tuple(inputs))
         base_seconds = time.perf_counter() - base_start
 
         self.synchronize()
@@ -164,14 +176,14 @@ class FullImageDenoiser:
         network_seconds = time.perf_counter() - net_start
         outputs = _keep_environment(outputs, inputs, clean["coverage"])
 
-        diffuse = diffuse_inverse(outputs["diffuse"], albedo)
-        specular = specular_inverse(outputs["specular"]) if run_specular else clean.get("specular")
+        diffuse = diffuse_inverse(outputs["diffuse"], albedo) / np.float32(gain)
+        specular = specular_inverse(outputs["specular"]) / np.float32(gain) if run_specular else clean.get("specular")
         image = diffuse + specular if specular is not None else diffuse.copy()
         return DenoiseResult(
             image=image, diffuse=diffuse, specular=specular, branches=tuple(inputs),
             specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
             nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds, base_seconds=base_seconds,
-            seconds=time.perf_counter() - start,
+            exposure_gain=gain, seconds=time.perf_counter() - start,
         )
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
@@ -242,7 +254,8 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 
 
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
-                  compile: bool = False, name: str | None = None) -> FullImageDenoiser:
+                  compile: bool = False, name: str | None = None, normalize_exposure: bool = True
+                  ) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
@@ -272,4 +285,5 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
                      "the architecture its own metadata describes")
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
-                             compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path))
+                             compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
+                             normalize_exposure=normalize_exposure)

@@ -1,0 +1,49 @@
+"""Exposure normalisation at inference: a dim image is scaled up to the brightness the networks trained on.
+
+The networks see log1p(radiance). Above ~1 an exposure change only shifts the log values, but a dim
+image sits in log1p's near-linear range, where its noise is too small in absolute terms for the
+networks to tell from detail: scaled to 1/16 of their exposure, the pretraining corpus's val scenes
+come out of admc at 0.52x their input's relMSE at 4 spp instead of 0.098x (scripts/exposure_check.py).
+Multiplying the radiance by a gain k >= 1 (a power of two) before the networks and dividing their
+output by k is an exact exposure change of the render, so the denoised image stays in the input's units. Bright images
+keep k = 1: scaling them down measured worse, not better.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .transforms import RADIANCE_MAX
+
+TRAINED_BRIGHTNESS = 0.21
+"""Median brightness() of the pretraining corpus's noisy renders (configs/pretrain.toml, its 114 train
+scenes: 0.212 at 4 spp, 0.215 at 64 spp; its 10th percentile is 0.053)."""
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+LIT = 1e-6
+"""Pixels darker than this (a black background, samples that found no light) carry no exposure."""
+
+
+def brightness(radiance: np.ndarray) -> float:
+    """Geometric mean luminance of the lit pixels of an (H, W, 3) linear image; 0 when none is lit.
+
+    The geometric mean follows the log values the networks see, and ignoring unlit pixels keeps a
+    small object on a black background as bright as the object.
+    """
+    luminance = np.asarray(radiance, dtype=np.float32) @ LUMINANCE
+    lit = luminance[np.isfinite(luminance) & (luminance > LIT)]
+    return float(np.exp(np.mean(np.log(lit)))) if lit.size else 0.0
+
+
+def exposure_gain(radiance: np.ndarray) -> float:
+    """A power of two k >= 1 that brings a dim image's brightness() to within a factor sqrt(2) of
+    TRAINED_BRIGHTNESS, no further than keeps its brightest value within RADIANCE_MAX (a clipped emitter
+    would come back darker); 1 for an image at least that bright. Powers of two scale float values
+    exactly, so the same image at any exposure reaches the networks as the same values."""
+    level = brightness(radiance)
+    if level <= 0.0 or level >= TRAINED_BRIGHTNESS:
+        return 1.0
+    steps = round(np.log2(TRAINED_BRIGHTNESS / level))
+    peak = float(np.max(radiance, initial=0.0, where=np.isfinite(radiance)))
+    if peak > 0:
+        steps = min(steps, int(np.floor(np.log2(RADIANCE_MAX / peak))))
+    return float(2.0 ** max(steps, 0))
