@@ -7,8 +7,8 @@ networks to tell from detail. Measured on the 32 val scenes of the pretraining c
 their own exposure, 0.49 / 1.43 at 1/16 of it (worse than the input); normalised, 0.16 / 0.39 and
 0.19 / 0.43, and worse than without on none of the 32 at their own exposure.
 Multiplying the radiance by a gain k >= 1 (a power of two) before the networks and dividing their
-output by k is an exact exposure change of the render, so the denoised image stays in the input's units. Bright images
-keep k = 1: scaling them down measured worse, not better.
+output by k is an exact exposure change of the render, so the denoised image stays in the input's
+units. Bright images keep k = 1: scaling them down measured worse, not better.
 """
 from __future__ import annotations
 
