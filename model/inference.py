@@ -156,7 +156,10 @@ class FullImageDenoiser:
         run_specular = "specular" in clean and "specular" in self.generators
         radiance = clean["diffuse"] + clean["specular"] if "specular" in clean else clean["diffuse"]
         gain = exposure_gain(radiance) if self.normalize_exposure else 1.0
-        exposed = {**clean, **{name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}}
+        exposed = dict(clean)
+        for name in ("diffuse", "specular"):
+            if name in clean:
+                exposed[name] = clean[name] * np.float32(gain)
         inputs = {"diffuse": diffuse_forward(exposed["diffuse"], albedo)}
         if run_specular:
             inputs["specular"] = specular_forward(exposed["specular"])
