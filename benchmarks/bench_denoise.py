@@ -3,12 +3,13 @@ random weights (speed does not depend on them), the paper's and the default (sma
 on the same image and device, the baselines the evaluation compares against (Intel OIDN; NVIDIA
 OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
-    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn]
+    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-unet]
         [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 512]
         [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
-admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first. Each timed run is one
+admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
+model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run is one
 FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with the
 copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
@@ -27,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from admc.model.generator import Generator
+from admc.model.generator import build_generator
 from admc.model.inference import FullImageDenoiser
 from admc.model.tiling import receptive_radius
 from admc.model.precision import PRECISIONS, resolve_precision
@@ -39,6 +40,7 @@ CONFIGS = {
     "paper": paper_settings()[0].generator_config(),
     "small": small_settings()[0].generator_config(),
     "small+oidn": replace(small_settings()[0], base="oidn").generator_config(),
+    "small-unet": replace(small_settings()[0], backbone="unet").generator_config(),
 }
 
 
@@ -58,7 +60,7 @@ def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
 def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser], args: argparse.Namespace) -> None:
     """Time admc (both branches) in each precision and the baselines, taking turns run by run."""
     torch.manual_seed(0)
-    diffuse, specular = Generator(CONFIGS[name]), Generator(CONFIGS[name])
+    diffuse, specular = build_generator(CONFIGS[name]), build_generator(CONFIGS[name])
     height, width = layers["diffuse"].shape[:2]
     tile = args.tile or max(height, width)
     # a copy of the networks per precision: the denoiser moves them to its memory layout in place

@@ -11,8 +11,9 @@ Shape: head (full resolution, `channels`) -> per level: a CFM residual block, th
 the next level's width -> `blocks` CFM residual blocks at 1/2^levels -> per level back up: nearest
 upsampling, a 3x3 conv to that level's width, the skip from the way down added, a CFM residual block
 -> the paper's tail (and input skip). Widths grow by `channels` per level (16, 32, 48, 64 for the
-small model). Inputs whose size is not a multiple of 2^levels are zero-padded at the bottom and right
-and the output cropped back, so any size works.
+small model). Inputs whose size is not a multiple of 2^levels are padded at the bottom and right by
+repeating their edge, as every conv pads (encoder.conv3x3), and the output cropped back, so any size
+works and a flat image stays flat up to its border.
 """
 from __future__ import annotations
 
@@ -58,8 +59,8 @@ class UNetGenerator(Generator):
     def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
         height, width = head.shape[-2:]
         pad_h, pad_w = -height % self.alignment, -width % self.alignment
-        f = F.pad(head, (0, pad_w, 0, pad_h))
-        conds = self._pooled(F.pad(cond, (0, pad_w, 0, pad_h)) if cond is not None else None)
+        f = F.pad(head, (0, pad_w, 0, pad_h), mode="replicate")
+        conds = self._pooled(F.pad(cond, (0, pad_w, 0, pad_h), mode="replicate") if cond is not None else None)
         skips = []
         for level, (block, down) in enumerate(zip(self.down_blocks, self.downs)):
             f = block(f, conds[level])

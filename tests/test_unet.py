@@ -47,6 +47,18 @@ def test_any_size_comes_back_the_same_size_and_non_negative(size):
     assert out.shape == x.shape and bool((out >= 0).all()) and bool(torch.isfinite(out).all())
 
 
+def test_a_flat_image_of_any_size_stays_flat_up_to_its_border():
+    """Sizes off the coarse grid are padded by repeating the edge; zero padding made the bottom and right
+    border differ from the interior (a frame, as the paper body had before its convs repeated the edge)."""
+    g = strong_unet(2)
+    for height, width in [(37, 23), (16, 16), (9, 30)]:
+        x, f = torch.full((1, 3, height, width), 0.4), torch.full((1, 7, height, width), 0.3)
+        with torch.no_grad():
+            out = g(x, f)[0].numpy()
+        # Every pixel sums the same float32 products; oneDNN may order them differently at row ends.
+        np.testing.assert_allclose(out, np.broadcast_to(out[:, :1, :1], out.shape), rtol=1e-5, atol=0)
+
+
 @pytest.mark.parametrize("levels,blocks", [(1, 1), (2, 1), (3, 2)])
 def test_receptive_radius_bounds_an_impulse_and_is_not_loose(levels, blocks):
     g = strong_unet(1, dataclasses.replace(TINY, levels=levels, blocks=blocks))
