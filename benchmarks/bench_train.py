@@ -2,11 +2,12 @@
 side: critic update with gradient penalty, then generator update (L1 + adversarial), optimiser steps
 and non-finite guards.
 
-    .venv/bin/python benchmarks/bench_train.py [--device cpu|cuda] [--configs small paper]
+    .venv/bin/python benchmarks/bench_train.py [--device cpu|cuda] [--configs small paper small-unet]
         [--precisions float32 bfloat16] [--batch-size N] [--patch-size P] [--steps 5] [--warmup 2]
         [--threads N] [--compile]
 
-small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml. Inputs are
+small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml, small-unet the
+small model on the multi-scale body (model.backbone = "unet"). Inputs are
 random tensors in the store's value ranges (the data loader is not timed). One trainer per precision
 (train.precision: bf16 autocast + channels_last, float32 losses and gradient penalty); after --warmup
 steps each, the precisions take turns step by step, so a busy machine slows them alike; figures are
@@ -45,8 +46,12 @@ def timed_step(trainer: BranchTrainer, batch: dict[str, torch.Tensor], device: t
     return time.perf_counter() - start
 
 
+CONFIGS = {"small": small_settings, "paper": paper_settings,
+           "small-unet": lambda: (replace(small_settings()[0], backbone="unet"), small_settings()[1])}
+
+
 def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
-    model, train = paper_settings() if name == "paper" else small_settings()
+    model, train = CONFIGS[name]()
     train = replace(train, batch_size=args.batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
                     critic_steps_per_g=1, head_tail_start_step=0)
     batch = make_batch(train.batch_size, args.patch_size)
@@ -79,7 +84,7 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    parser.add_argument("--configs", nargs="+", default=["small", "paper"], choices=("small", "paper"))
+    parser.add_argument("--configs", nargs="+", default=["small", "paper"], choices=list(CONFIGS))
     parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=("float32", "bfloat16"))
     parser.add_argument("--batch-size", type=int, default=None, help="default: each config's own")
     parser.add_argument("--patch-size", type=int, default=128)

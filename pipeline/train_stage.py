@@ -1,6 +1,7 @@
 """`admc-pipe train`: build (or reuse) the patch store, then pretrain or fine-tune both branches."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from collections import Counter
@@ -22,15 +23,28 @@ from admc.stores.checkpoints import load_checkpoint, read_networks
 WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
 
 
-def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
-    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
+def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
+    """(file, architecture) of every entry of weights/manifest.json."""
     manifest = weights_dir / "manifest.json"
     if not manifest.is_file():
-        return None
-    for entry in json.loads(manifest.read_text())["weights"]:
-        if ModelSettings.from_saved(entry["model"]) == model:
-            return weights_dir / entry["file"]
-    return None
+        return []
+    return [(weights_dir / entry["file"], ModelSettings.from_saved(entry["model"]))
+            for entry in json.loads(manifest.read_text())["weights"]]
+
+
+def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
+    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
+    return next((path for path, saved in _shipped(weights_dir) if saved == model), None)
+
+
+def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> str:
+    """Why no shipped weights fit `model`: the [model] keys in which those of its base differ from it."""
+    hints = []
+    for path, saved in _shipped(weights_dir):
+        if saved.base == model.base:
+            keys = [k for k, v in dataclasses.asdict(saved).items() if getattr(model, k) != v]
+            hints.append(f"{path.name} has " + ", ".join(f"model.{k} = {getattr(saved, k)!r}" for k in keys))
+    return f" ({'; '.join(hints)})" if hints else ""
 
 
 def train_dir(cfg: Config, stage: str) -> Path:
@@ -77,7 +91,7 @@ def _prepare(cfg: Config, stage: str, init_from: Path | None, restart: bool, pro
         if init_from is None:
             raise StageError("finetune needs pretrained weights: pass --init CHECKPOINT (e.g. "
                              f"{train_dir(cfg, 'pretrain') / WEIGHTS_NAME}); no shipped weights in weights/ "
-                             "match this [model] config")
+                             f"match this [model] config{shipped_mismatch(cfg.model)}")
     if init_from is not None and not Path(init_from).is_file():
         raise StageError(f"{init_from}: no such checkpoint or weights file")
     check_splits(cfg)

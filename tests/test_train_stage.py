@@ -166,3 +166,12 @@ def test_the_default_config_finds_the_shipped_weights_and_they_load():
     assert path is not None and path.is_file()
     denoiser = load_denoiser(path)
     assert set(denoiser.generators) == {"diffuse", "specular"}
+
+
+def test_finetune_names_how_the_config_differs_from_the_shipped_weights(tmp_path):
+    """A [model] the shipped weights do not have: the message names each differing key and its shipped value."""
+    out = cli("train", "--stage", "finetune", "--set", "model.backbone=unet", "--set", "model.channels=24",
+              "--set", f"run.workdir='{tmp_path}'")
+    assert out.returncode == 2
+    assert "admc-small-pretrained.pt has model.channels = 16, model.backbone = 'residual'" in out.stderr, out.stderr
+    assert "admc-small-refiner.pt" not in out.stderr and "Traceback" not in out.stderr
