@@ -9,9 +9,9 @@ OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
-model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run is one
-FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with the
-copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
+model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run
+is one FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with
+the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
 with AVX512-BF16 or AMX). --tile 512 (the default) runs the image in tiles with the receptive-field
