@@ -175,3 +175,24 @@ def test_finetune_names_how_the_config_differs_from_the_shipped_weights(tmp_path
     assert out.returncode == 2
     assert "admc-small-pretrained.pt has model.channels = 16, model.backbone = 'residual'" in out.stderr, out.stderr
     assert "admc-small-refiner.pt" not in out.stderr and "Traceback" not in out.stderr
+
+
+def test_every_shipped_file_is_whole_and_is_the_architecture_its_entry_names():
+    """weights/manifest.json is what fine-tuning and evaluation trust: each file hashes to its entry and loads
+    as the [model] the entry records (the multi-scale admc-small-unet.pt beside the residual files)."""
+    import hashlib
+
+    from admc.model.inference import load_denoiser
+    from admc.model.settings import ModelSettings
+    from admc.model.unet import UNetGenerator
+    from admc.pipeline.train_stage import WEIGHTS_DIR
+
+    entries = json.loads((WEIGHTS_DIR / "manifest.json").read_text())["weights"]
+    assert {e["model"]["backbone"] for e in entries} == {"residual", "unet"}
+    for entry in entries:
+        path = WEIGHTS_DIR / entry["file"]
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"], entry["file"]
+        model = ModelSettings.from_saved(entry["model"])
+        assert shipped_weights(model) == path
+        generator = load_denoiser(path).generators["diffuse"]
+        assert isinstance(generator, UNetGenerator) == (model.backbone == "unet"), entry["file"]
