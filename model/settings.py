@@ -108,6 +108,8 @@ class TrainSettings:
     adversarial: bool = True
     val_every: int = 5_000                # 0 = no validation
     val_patches: int = 64
+    select_z: float = 2.0                 # a fine-tuning ships a step only this many standard errors better than
+                                          # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
     log_every: int = 100
     num_workers: int = 4
@@ -128,7 +130,7 @@ class TrainSettings:
         for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
-        for name in ("l1_weight", "adv_weight", "gp_weight"):
+        for name in ("l1_weight", "adv_weight", "gp_weight", "select_z"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
         _require(self.lr_gamma <= 1, "lr_gamma", f"must be in (0, 1], got {self.lr_gamma!r}")

@@ -114,7 +114,7 @@ class _Run:
     notes: list[str] = field(default_factory=list)
     trainers: dict[str, BranchTrainer] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
-    best: BestNetworks = field(default_factory=BestNetworks)
+    best: BestNetworks = field(init=False)
     validation: dict[str, dict[str, float]] = field(default_factory=dict)
     last_losses: dict[str, dict[str, float]] = field(default_factory=dict)
     transform: dict | None = None
@@ -133,6 +133,7 @@ class _Run:
             share = max(1, (os.cpu_count() or 1) // self.ranks.local_world)
             torch.set_num_threads(self.settings.threads or share)
         self.fingerprint = patches.fingerprint(self.store) if patches.exists(self.store) else None
+        self.best = BestNetworks(self.settings.select_z)
 
     def say(self, message: str) -> None:
         """Show a note now under the progress bar, or (without one) keep it for the caller to report."""
@@ -228,9 +229,11 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     """Validate every branch, log it and offer its networks to the selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
-        run.validation[b] = validate(trainer.generator, rows, b, run.settings.batch_size, run.device, trainer.dtype)
+        run.validation[b], per_patch = validate(trainer.generator, rows, b, run.settings.batch_size, run.device,
+                                                trainer.dtype)
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
-        run.best.offer(b, step, run.validation[b][SELECTION_METRIC], trainer.generator, trainer.critic)
+        guard = step == 0 and run.init_from is not None  # fine-tuning: ship nothing that is not proven better
+        run.best.offer(b, step, per_patch, trainer.generator, trainer.critic, guard=guard)
 
 
 def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], start: int, resume: bool) -> None:

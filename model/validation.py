@@ -25,9 +25,9 @@ def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
 
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
-             device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, float]:
-    """{"psnr", "relmse", "noisy_psnr", "noisy_relmse"[, "base_psnr", "base_relmse"]} averaged over the val
-    patches (base: OIDN's output, for a refiner), the generator
+             device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[dict[str, float], Tensor]:
+    """({"psnr", "relmse", "noisy_psnr", "noisy_relmse"[, "base_psnr", "base_relmse"]} averaged over the val
+    patches (base: OIDN's output, for a refiner), the output's relMSE per patch), the generator
     run in `dtype` as in training (and as the denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
@@ -44,10 +44,11 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     ref = to_linear(val["reference"], features, branch)
     out = to_linear(torch.cat(outputs), features, branch)
     noisy = to_linear(val["noisy"], features, branch)
-    scores = {"psnr": float(psnr_torch(out, ref).mean()), "relmse": float(relmse_torch(out, ref).mean())}
+    per_patch = relmse_torch(out, ref)
+    scores = {"psnr": float(psnr_torch(out, ref).mean()), "relmse": float(per_patch.mean())}
     for name in ("noisy", "base"):  # what the generator starts from: the run must beat it
         if name in val:
             start = to_linear(val[name], features, branch)
             scores.update({f"{name}_psnr": float(psnr_torch(start, ref).mean()),
                            f"{name}_relmse": float(relmse_torch(start, ref).mean())})
-    return scores
+    return scores, per_patch

@@ -1,6 +1,8 @@
-"""Training ships each branch's best networks by validation, not its last, and a fine-tuning that never
-beats its starting weights ships them unchanged (real tiny store, real training steps)."""
+"""Training ships each branch's best networks by validation, not its last, and a fine-tuning that does
+not beat its starting weights by more than the val patches' noise ships them unchanged (real tiny store,
+real training steps)."""
 import dataclasses
+import math
 import shutil
 
 import pytest
@@ -10,7 +12,7 @@ from torch import nn
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store
-from admc.model.selection import BestNetworks
+from admc.model.selection import BestNetworks, improvement_z
 from admc.model.settings import ModelSettings, TrainSettings
 from admc.model.trainer import train
 from admc.stores.checkpoints import load_checkpoint, load_weights
@@ -28,19 +30,50 @@ def store(tmp_path_factory, variant):
     return build_tiny_store(tmp_path_factory.mktemp("selection_store"), size=64, patch=32)
 
 
+def patches(*values):
+    return torch.tensor(values, dtype=torch.float64)
+
+
 def test_best_networks_keep_the_lowest_value_and_the_earlier_step_on_ties():
     best, net = BestNetworks(), nn.Linear(2, 1)
-    assert best.offer("diffuse", 0, 0.5, net, net)
+    assert best.offer("diffuse", 0, patches(0.5, 0.5), net, net)
     with torch.no_grad():
         net.weight.fill_(7.0)
-    assert not best.offer("diffuse", 2, 0.5, net, net) and not best.offer("diffuse", 4, 0.6, net, net)
+    assert not best.offer("diffuse", 2, patches(0.4, 0.6), net, net)
+    assert not best.offer("diffuse", 4, patches(0.6, 0.6), net, net)
     kept = best.networks("diffuse", net, net)["generator"]["weight"]
     assert not torch.equal(kept, net.weight)  # the copy from step 0, not the live module
-    assert best.offer("diffuse", 6, 0.4, net, net) and best.best["diffuse"].step == 6
+    assert best.offer("diffuse", 6, patches(0.3, 0.5), net, net) and best.best["diffuse"].step == 6
     assert best.networks("specular", net, net)["generator"] is not None  # never validated: the given ones
     again = BestNetworks()
     again.load_state_dict(best.state_dict())
     assert again.best["diffuse"].step == 6 and again.best["diffuse"].value == 0.4
+
+
+def test_improvement_z_is_the_paired_mean_difference_over_its_standard_error():
+    start = patches(1.0, 2.0, 3.0, 4.0)
+    # differences 0.1, 0.3, 0.1, 0.3: mean 0.2, sample std 0.11547, standard error 0.057735
+    assert improvement_z(start, patches(0.9, 1.7, 2.9, 3.7)) == pytest.approx(0.2 / 0.057735, rel=1e-5)
+    assert improvement_z(start, start - 0.5) == math.inf and improvement_z(start, start + 0.5) == -math.inf
+    assert math.isnan(improvement_z(patches(1.0), patches(0.5)))
+
+
+def test_guarded_starting_weights_give_way_only_to_a_significant_improvement():
+    best, net = BestNetworks(min_z=2.0), nn.Linear(2, 1)
+    start = patches(1.0, 2.0, 3.0, 4.0)
+    assert best.offer("diffuse", 0, start, net, net, guard=True)
+    noise = patches(0.8, 2.1, 2.9, 4.1)  # mean 0.025 lower, but the patches disagree: z = 0.33
+    assert not best.offer("diffuse", 2, noise, net, net) and best.best["diffuse"].step == 0
+    selected, notes = best.summary(4, {"diffuse": 2.475})
+    assert selected["diffuse"]["step"] == 0
+    assert "step 2 was 1% below the starting weights" in notes[0] and "within the noise" in notes[0]
+    assert best.offer("diffuse", 4, patches(0.9, 1.8, 2.9, 3.8), net, net)  # every patch better: z = 5.2
+    again = BestNetworks(min_z=2.0)
+    again.load_state_dict(best.state_dict())  # a resumed run keeps guarding the same starting weights
+    assert not again.offer("diffuse", 6, patches(0.5, 2.3, 2.8, 3.7), net, net)  # below step 4, but z = 1.03
+    assert again.best["diffuse"].step == 4
+    loose = BestNetworks(min_z=0.0)
+    assert loose.offer("diffuse", 0, start, net, net, guard=True) and loose.offer("diffuse", 2, noise, net, net)
 
 
 def glaring_targets(store, tmp_path):
@@ -72,6 +105,21 @@ def test_a_finetuning_that_only_gets_worse_ships_its_starting_weights(store, tmp
     # the checkpoint still holds the last state, so the run resumes where it stopped
     last = load_checkpoint(fine.checkpoint)["branches"]["diffuse"]["generator"]["head.weight"]
     assert not torch.equal(last.half(), start["branches"]["diffuse"]["generator"]["head.weight"])
+
+
+def test_a_finetuning_within_the_val_noise_ships_its_starting_weights_and_says_so(store, tmp_path):
+    pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, val_every=0), TINY, progress=False)
+    faster = dataclasses.replace(SETTINGS, lr_g_diffuse=1e-3, lr_g_specular=1e-3)
+    loose = train(store, tmp_path / "loose", dataclasses.replace(faster, select_z=0.0), TINY, stage="finetune",
+                  init_from=pre.weights, progress=False)
+    assert loose.selected["specular"]["step"] > 0  # the premise: some step has a lower val mean
+    strict = train(store, tmp_path / "strict", dataclasses.replace(faster, select_z=1e6), TINY, stage="finetune",
+                   init_from=pre.weights, progress=False)
+    assert strict.selected["specular"]["step"] == 0
+    assert any(note.startswith("specular: step ") and "within the noise" in note for note in strict.notes)
+    start, shipped = load_weights(pre.weights), load_weights(strict.weights)
+    for name, value in start["branches"]["specular"]["generator"].items():
+        assert torch.equal(shipped["branches"]["specular"]["generator"][name], value), name
 
 
 def test_a_resumed_run_keeps_the_best_it_had_and_ships_what_one_run_ships(store, tmp_path):
