@@ -109,10 +109,10 @@ def test_a_finetuning_that_only_gets_worse_ships_its_starting_weights(store, tmp
 
 def test_a_finetuning_within_the_val_noise_ships_its_starting_weights_and_says_so(store, tmp_path):
     pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, val_every=0), TINY, progress=False)
-    faster = dataclasses.replace(SETTINGS, lr_g_diffuse=1e-3, lr_g_specular=1e-3)
+    faster = dataclasses.replace(SETTINGS, lr_g_diffuse=3e-3, lr_g_specular=3e-3, precision="float32")
     loose = train(store, tmp_path / "loose", dataclasses.replace(faster, select_z=0.0), TINY, stage="finetune",
                   init_from=pre.weights, progress=False)
-    assert loose.selected["specular"]["step"] > 0  # the premise: some step has a lower val mean
+    assert loose.selected["specular"]["step"] > 0  # the premise: a step has a far lower val mean (~30% here)
     strict = train(store, tmp_path / "strict", dataclasses.replace(faster, select_z=1e6), TINY, stage="finetune",
                    init_from=pre.weights, progress=False)
     assert strict.selected["specular"]["step"] == 0
