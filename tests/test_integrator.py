@@ -164,6 +164,31 @@ def test_albedo_of_rough_conductor_matches_monte_carlo(variant):
     np.testing.assert_allclose(buf["specular"].reshape(-1, 3).mean(axis=0), expected, rtol=0.02)
 
 
+def test_albedo_of_rough_plastic_is_its_diffuse_reflectance_in_every_sample(variant):
+    """A rough plastic's BSDF sample weight depends on the lobe and direction drawn; its diffuse
+    reflectance does not. The albedo must be the latter, exactly, in every pixel at 2 spp: dividing
+    the diffuse buffer by a noisy albedo would add that noise to what the denoiser sees and returns."""
+    import mitsuba as mi
+
+    T = mi.ScalarTransform4f
+    reflectance = [0.2, 0.3, 0.6]
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "orthographic", "film": dict(BOX_FILM),
+                   "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])},
+        "env": {"type": "constant"},
+        "plane": {"type": "rectangle", "to_world": T().scale(2.0),
+                  "bsdf": {"type": "twosided", "bsdf": {
+                      "type": "roughplastic", "alpha": 0.3,
+                      "diffuse_reflectance": {"type": "rgb", "value": reflectance}}}},
+    })
+    buf = render_buffers(scene, 2, seed=3)
+    assert (buf["coverage"] == 1).all()
+    np.testing.assert_allclose(buf["albedo"].reshape(-1, 3), np.broadcast_to(reflectance, (SIZE * SIZE, 3)),
+                               rtol=1e-6)
+    assert buf["specular"].max() > 0  # the glossy lobe was sampled: the old sample-weight albedo varied here
+
+
 def test_features_follow_mirror_and_glass_to_the_wall(variant):
     """Albedo, normal and depth are taken at the wall, behind a mirror and a glass slab.
 

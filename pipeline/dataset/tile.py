@@ -99,7 +99,7 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
 
     The reference diffuse is demodulated by this level's own albedo, the one inference has, so
     expm1(output) * (noisy albedo + eps) targets the reference radiance exactly even where a low-spp
-    albedo estimate is noisy (rough plastic, texture edges): one reference entry per row.
+    albedo varies (texture detail within a pixel, glass): one reference entry per row.
     """
     albedo = layers["albedo"]
     images = {"noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),

@@ -10,9 +10,12 @@ Split rule: delta vertices (mirror, smooth glass, null) are followed. At the fir
 vertex, next-event estimation is split exactly by evaluating the BSDF with a diffuse-only context
 (diffuse part -> `diffuse`, remainder -> `specular`), and the lobe the BSDF sample picks there sends
 the whole rest of the path to one buffer. Emission reached before that vertex goes to `diffuse`.
-Features (albedo, shading normal, depth) are taken at that vertex; albedo is the BSDF sample weight
-there times the delta chain's throughput, so conductors and dielectrics get a real albedo (Mitsuba's
-`eval_diffuse_reflectance` is 0 for them).
+Features (albedo, shading normal, depth) are taken at that vertex, times the delta chain's
+throughput. Albedo is the diffuse reflectance where the BSDF has a diffuse lobe: it is exact per
+sample, so demodulating the diffuse buffer by it adds no noise (the BSDF sample weight of a rough
+plastic is a noisy estimate: which lobe was picked, which direction). Elsewhere it is the sample
+weight, so conductors and dielectrics get a real albedo (Mitsuba's `eval_diffuse_reflectance` is 0
+for them); their diffuse buffer is empty anyway.
 
 The sampling loop is a Dr.Jit symbolic loop (`@dr.syntax`): in JIT variants the whole wavefront
 compiles into one kernel, which is what makes a Python integrator as fast as the C++ `path`.
@@ -154,7 +157,9 @@ def _integrator_class(variant: str) -> type:
                     l_diffuse[active_em] = dr.fma(throughput, nee, l_diffuse)
 
                 # ---- Features at the first non-delta vertex
-                albedo[first] = throughput * dr.select(on_emitter, 1.0, bsdf_weight)
+                has_diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
+                reflectance = dr.select(has_diffuse, bsdf.eval_diffuse_reflectance(si, first), bsdf_weight)
+                albedo[first] = throughput * dr.select(on_emitter, 1.0, reflectance)
                 normal[first] = si.sh_frame.n
                 to_specular[first] = ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
                 found |= first
