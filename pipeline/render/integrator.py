@@ -15,7 +15,10 @@ throughput. Albedo is the diffuse reflectance where the BSDF has a diffuse lobe:
 sample, so demodulating the diffuse buffer by it adds no noise (the BSDF sample weight of a rough
 plastic is a noisy estimate: which lobe was picked, which direction). Elsewhere it is the sample
 weight, so conductors and dielectrics get a real albedo (Mitsuba's `eval_diffuse_reflectance` is 0
-for them); their diffuse buffer is empty anyway.
+for smooth ones and f * pi at normal incidence for rough ones, 6.0 for rough gold); their diffuse
+buffer is empty anyway. A BSDF that reports no diffuse reflectance of its own but has a diffuse lobe
+(a `blendbsdf` of diffuse and metal) gets that default too: noise-free, the same in training and
+inference, clipped to 1 by the transforms, but not a physical albedo.
 
 The sampling loop is a Dr.Jit symbolic loop (`@dr.syntax`): in JIT variants the whole wavefront
 compiles into one kernel, which is what makes a Python integrator as fast as the C++ `path`.
