@@ -161,7 +161,7 @@ def _integrator_class(variant: str) -> type:
 
                 # ---- Features at the first non-delta vertex
                 has_diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
-                reflectance = dr.select(has_diffuse, bsdf.eval_diffuse_reflectance(si, first), bsdf_weight)
+                reflectance = dr.select(has_diffuse, bsdf.eval_diffuse_reflectance(si, first & has_diffuse), bsdf_weight)
                 albedo[first] = throughput * dr.select(on_emitter, 1.0, reflectance)
                 normal[first] = si.sh_frame.n
                 to_specular[first] = ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
