@@ -46,8 +46,13 @@ def timed_step(trainer: BranchTrainer, batch: dict[str, torch.Tensor], device: t
     return time.perf_counter() - start
 
 
-CONFIGS = {"small": small_settings, "paper": paper_settings,
-           "small-unet": lambda: (replace(small_settings()[0], backbone="unet"), small_settings()[1])}
+def small_unet_settings():
+    """The small model on the multi-scale body (model.backbone = "unet"), same training settings."""
+    model, train = small_settings()
+    return replace(model, backbone="unet"), train
+
+
+CONFIGS = {"small": small_settings, "paper": paper_settings, "small-unet": small_unet_settings}
 
 
 def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:

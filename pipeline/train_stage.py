@@ -8,6 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 import admc
+from admc.common.diff import differing_keys
 from admc.model.inference import FullImageDenoiser, load_denoiser
 from admc.model.settings import ModelSettings
 from admc.model import distributed
@@ -42,7 +43,7 @@ def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> s
     hints = []
     for path, saved in _shipped(weights_dir):
         if saved.base == model.base:
-            keys = [k for k, v in dataclasses.asdict(saved).items() if getattr(model, k) != v]
+            keys = differing_keys(dataclasses.asdict(saved), dataclasses.asdict(model))
             hints.append(f"{path.name} has " + ", ".join(f"model.{k} = {getattr(saved, k)!r}" for k in keys))
     return f" ({'; '.join(hints)})" if hints else ""
 

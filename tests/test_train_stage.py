@@ -173,7 +173,7 @@ def test_finetune_names_how_the_config_differs_from_the_shipped_weights(tmp_path
     out = cli("train", "--stage", "finetune", "--set", "model.backbone=unet", "--set", "model.channels=24",
               "--set", f"run.workdir='{tmp_path}'")
     assert out.returncode == 2
-    assert "admc-small-pretrained.pt has model.channels = 16, model.backbone = 'residual'" in out.stderr, out.stderr
+    assert "admc-small-pretrained.pt has model.backbone = 'residual', model.channels = 16" in out.stderr, out.stderr
     assert "admc-small-refiner.pt" not in out.stderr and "Traceback" not in out.stderr
 
 
