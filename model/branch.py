@@ -112,7 +112,7 @@ class BranchTrainer:
             fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
-                                         adversarial)
+                                         adversarial, s.l1_floor)
         parts["generator_loss"] = loss.detach()
         if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts

@@ -7,21 +7,39 @@ All losses are computed in float32, whatever precision the networks ran in.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 
+def log_floor(y: Tensor, floor: float) -> Tensor:
+    """log(expm1(y) + floor) for y >= 0, continued below 0 by its tangent at 0, log(floor) + y / floor.
+
+    The networks' values y are log1p of linear radiance v, so this is log(v + floor): floor = 1 gives y
+    itself, and a smaller floor weighs a dark pixel's error up to 1 / floor times more. Written as
+    y + log1p((floor - 1) e^-y), it stays finite for any y, and so does its gradient (at most 1 / floor).
+    """
+    if floor == 1.0:
+        return y
+    upper = y.clamp(min=0)
+    upper = upper + torch.log1p((floor - 1.0) * torch.exp(-upper))
+    return torch.where(y >= 0, upper, math.log(floor) + y / floor)
+
+
 def generator_loss(fake: Tensor, real: Tensor, critic_fake: Tensor | None, l1_weight: float = 1.0,
-                   adv_weight: float = 5e-3, adversarial: bool = True) -> tuple[Tensor, dict[str, Tensor]]:
+                   adv_weight: float = 5e-3, adversarial: bool = True, l1_floor: float = 1.0
+                   ) -> tuple[Tensor, dict[str, Tensor]]:
     """Total generator loss and its detached parts ("l1", and "adversarial" when on).
 
     `critic_fake` is D(fake) with the graph to the generator kept; `adversarial=False` is the
-    paper's "L1 only" ablation, and then `critic_fake` may be None.
+    paper's "L1 only" ablation, and then `critic_fake` may be None. The L1 term compares
+    log_floor(., l1_floor) of both (1.0: the networks' own log1p domain).
     """
     if fake.shape != real.shape:
         raise ValueError(f"generator_loss: fake {tuple(fake.shape)} and real {tuple(real.shape)} differ in shape")
-    l1 = F.l1_loss(fake.float(), real.float())
+    l1 = F.l1_loss(log_floor(fake.float(), l1_floor), log_floor(real.float(), l1_floor))
     parts = {"l1": l1.detach()}
     if not adversarial:
         return l1_weight * l1, parts

@@ -55,7 +55,8 @@ def check_resumable(checkpoint: dict, path: Path, settings: TrainSettings, model
     if diff:
         raise TrainingError(f"{path}: model settings differ from the checkpoint's in {diff}")
     saved, now = checkpoint["settings"], dataclasses.asdict(settings)
-    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    defaults = dataclasses.asdict(TrainSettings())  # a key newer than the checkpoint ran at its default
+    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k, defaults[k]) != now[k]]
     if diff:
         raise TrainingError(f"{path}: train settings {diff} differ from the checkpoint's; an exact resume allows "
                             f"changing only {list(RESUMABLE_CHANGES)}")

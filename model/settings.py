@@ -103,6 +103,7 @@ class TrainSettings:
     lr_milestones: tuple[int, ...] = (50_000, 100_000, 150_000, 200_000)
     lr_gamma: float = 0.5
     l1_weight: float = 1.0
+    l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
     adv_weight: float = 5e-3
     gp_weight: float = 10.0
     adversarial: bool = True
@@ -127,7 +128,7 @@ class TrainSettings:
                                   "num_workers", "threads", "seed"))
         _require(self.val_every == 0 or (isinstance(self.val_patches, int) and self.val_patches >= 1),
                  "val_patches", f"must be >= 1 when val_every > 0, got {self.val_patches!r}")
-        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma"):
+        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
         for name in ("l1_weight", "adv_weight", "gp_weight", "select_z"):

@@ -75,6 +75,7 @@ def test_model_and_train_sections_match_the_settings_factories():
     ("train.lr_milestones=[5, 3]", "train.lr_milestones"),
     ("train.adversarial=1", "train.adversarial"),
     ("train.precision='float16'", "train.precision"),
+    ("train.l1_floor=0", "train.l1_floor"),
 ])
 def test_model_and_train_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -5,7 +5,7 @@ from torch import nn
 
 from admc.model.critic import Critic, CriticConfig
 from admc.model.generator import Generator, GeneratorConfig
-from admc.model.losses import critic_loss, generator_loss, gradient_penalty
+from admc.model.losses import critic_loss, generator_loss, gradient_penalty, log_floor
 
 
 class LinearCritic(nn.Module):
@@ -78,6 +78,35 @@ def test_generator_loss_weights_l1_and_adversarial_terms():
     assert l1_only.item() == pytest.approx(0.5) and set(parts) == {"l1"}
     with pytest.raises(ValueError, match="critic_fake is required"):
         generator_loss(fake, real, None)
+
+
+def test_log_floor_is_log_of_linear_plus_floor_and_stays_finite():
+    y = torch.linspace(0, 12, 241, dtype=torch.float64)
+    assert torch.equal(log_floor(y.float(), 1.0), y.float())  # the networks' own domain, unchanged
+    for floor in (0.01, 0.1, 0.5, 4.0):
+        want = torch.log(torch.expm1(y) + floor)
+        assert torch.allclose(log_floor(y.float(), floor).double(), want, rtol=1e-6, atol=1e-6)  # float32 rounding
+        h = 1e-3 * floor  # slope 1 / floor at 0: each side moves by 1e-3 (its curvature adds < 0.2% here)
+        x = torch.tensor([-3.0, -h, 0.0, h, 50.0, 1e4], requires_grad=True)
+        out = log_floor(x, floor)
+        out.sum().backward()
+        assert torch.isfinite(out).all() and torch.isfinite(x.grad).all()
+        assert x.grad.max().item() <= max(1.0, 1 / floor) * (1 + 1e-5)
+        # continuous, with a continuous slope (1 / floor), across 0 where the tangent takes over
+        assert (out[2] - out[1]).item() == pytest.approx(1e-3, rel=5e-3)  # float32 ulp at |log 0.01|: 5e-4
+        assert (out[3] - out[2]).item() == pytest.approx(1e-3, rel=5e-3)
+
+
+def test_a_smaller_l1_floor_weighs_an_error_in_a_dark_pixel_more():
+    """Same error in the log1p domain, once on a dark pixel (linear 0.01) and once on a bright one (10)."""
+    dark, bright = torch.log1p(torch.tensor(0.01)), torch.log1p(torch.tensor(10.0))
+    real = torch.stack([dark, bright]).reshape(1, 1, 1, 2)
+    error = torch.tensor([0.05, 0.0]).reshape(1, 1, 1, 2), torch.tensor([0.0, 0.05]).reshape(1, 1, 1, 2)
+    for floor, dark_over_bright in ((1.0, (1, 1.01)), (0.1, (5, 15))):
+        (on_dark, _), (on_bright, _) = (generator_loss(real + e, real, None, adversarial=False, l1_floor=floor)
+                                        for e in error)
+        lo, hi = dark_over_bright
+        assert lo <= on_dark.item() / on_bright.item() <= hi
 
 
 def test_critic_loss_is_half_the_negative_wasserstein_estimate_plus_weighted_gp():

@@ -216,6 +216,21 @@ def test_resume_refuses_changed_settings_and_a_missing_checkpoint(store, tmp_pat
         train(store, tmp_path / "run", SETTINGS, TINY, progress=False)
 
 
+def test_a_checkpoint_older_than_a_train_setting_resumes_at_that_settings_default(store, tmp_path):
+    """A checkpoint written before a train key existed ran at the key's default: resuming with the default
+    continues, resuming with another value is refused naming the key."""
+    settings = dataclasses.replace(SETTINGS, steps=2, val_every=0)
+    train(store, tmp_path / "run", settings, TINY, progress=False)
+    checkpoint = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    del checkpoint["settings"]["l1_floor"]
+    save_checkpoint(tmp_path / "run" / "checkpoint.pt", checkpoint)
+    with pytest.raises(ValueError, match=r"\['l1_floor'\] differ"):
+        train(store, tmp_path / "run", dataclasses.replace(settings, steps=3, l1_floor=0.1), TINY, resume=True,
+              progress=False)
+    assert train(store, tmp_path / "run", dataclasses.replace(settings, steps=3), TINY, resume=True,
+                 progress=False).step == 3
+
+
 def test_a_run_of_bad_steps_stops_and_keeps_the_last_good_checkpoint(store_copy, tmp_path):
     out = tmp_path / "run"
     settings = dataclasses.replace(SETTINGS, steps=4, val_every=0)
