@@ -4,7 +4,7 @@ and non-finite guards.
 
     .venv/bin/python benchmarks/bench_train.py [--device cpu|cuda] [--configs small paper small-unet]
         [--precisions float32 bfloat16] [--batch-size N] [--patch-size P] [--steps 5] [--warmup 2]
-        [--threads N] [--compile]
+        [--threads N] [--compile] [--l1-only]
 
 small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml, small-unet the
 small model on the multi-scale body (model.backbone = "unet"). Inputs are
@@ -13,7 +13,9 @@ random tensors in the store's value ranges (the data loader is not timed). One t
 steps each, the precisions take turns step by step, so a busy machine slows them alike; figures are
 medians over --steps, and the last line gives each precision's speed-up over the first. --compile
 wraps each generator in torch.compile (the critic's double backward for the penalty cannot be
-compiled) and prints the first step, which pays the compilation. Timings are synchronised on CUDA.
+compiled) and prints the first step, which pays the compilation. --l1-only times the step without a
+critic (train.adversarial = false), the way the shipped weights' last runs trained. Timings are
+synchronised on CUDA.
 """
 from __future__ import annotations
 
@@ -58,7 +60,7 @@ CONFIGS = {"small": small_settings, "paper": paper_settings, "small-unet": small
 def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
     model, train = CONFIGS[name]()
     train = replace(train, batch_size=args.batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
-                    critic_steps_per_g=1, head_tail_start_step=0)
+                    critic_steps_per_g=1, head_tail_start_step=0, adversarial=not args.l1_only)
     batch = make_batch(train.batch_size, args.patch_size)
     trainers = {}
     for precision in args.precisions:
@@ -67,7 +69,13 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
                                             args.patch_size, device)
         if args.compile:
             trainers[precision].generator = torch.compile(trainers[precision].generator)
-        first = timed_step(trainers[precision], batch, device)
+        try:
+            first = timed_step(trainers[precision], batch, device)
+        except Exception as error:  # torch.compile fails in many exception types
+            if not args.compile:
+                raise
+            raise SystemExit(f"{name} {precision}: torch {torch.__version__} could not compile the training step: "
+                             f"{type(error).__name__}: {str(error).splitlines()[0]}") from None
         for _ in range(args.warmup - 1):
             timed_step(trainers[precision], batch, device)
         if args.compile:
@@ -78,9 +86,10 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
             times[precision].append(timed_step(trainer, batch, device))
     medians = {p: statistics.median(t) for p, t in times.items()}
     for precision, seconds in medians.items():
+        step = "G, L1 only" if args.l1_only else "G + critic + GP"
         print(f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
               f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
-              f"(G + critic + GP, {device}{', compiled G' if args.compile else ''})", flush=True)
+              f"({step}, {device}{', compiled G' if args.compile else ''})", flush=True)
     base = args.precisions[0]
     print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {medians[base] / s:.2f}x"
                                                            for p, s in medians.items() if p != base), flush=True)
@@ -97,6 +106,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0 = torch default)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the generators")
+    parser.add_argument("--l1-only", action="store_true", help="no critic: train.adversarial = false")
     args = parser.parse_args()
     if args.warmup < 1:
         parser.error("--warmup must be >= 1")
