@@ -13,7 +13,7 @@ model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-
 is one FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with
 the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
-figures are medians over --repeats. bfloat16 is autocast with channels_last (the denoiser's default on CUDA and on CPUs
+figures are medians over --repeats. bfloat16 is autocast (the denoiser's default on CUDA and on CPUs
 with AVX512-BF16 or AMX). --tile 512 (the default) runs the image in tiles with the receptive-field
 halo, as `admc-pipe denoise` and eval do; --tile 0 runs it in one piece, which on the 2-core CPU is
 about twice as slow at 1280x720 (whole-image convs leave the caches).

@@ -9,7 +9,7 @@ and non-finite guards.
 small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml, small-unet the
 small model on the multi-scale body (model.backbone = "unet"). Inputs are
 random tensors in the store's value ranges (the data loader is not timed). One trainer per precision
-(train.precision: bf16 autocast + channels_last, float32 losses and gradient penalty); after --warmup
+(train.precision: bf16 autocast, float32 losses and gradient penalty; channels_last in both); after --warmup
 steps each, the precisions take turns step by step, so a busy machine slows them alike; figures are
 medians over --steps, and the last line gives each precision's speed-up over the first. --compile
 wraps each generator in torch.compile (the critic's double backward for the penalty cannot be

@@ -5,7 +5,7 @@ encoder learn at body_lr_factor x the branch's lr, head and tail at the lr and o
 head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code); MultiStepLR on
 each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
 so a bad batch never reaches the weights; the step counts as bad. The networks run in
-train.precision (bf16 autocast + channels_last, see precision.py); the losses and the gradient
+train.precision (bf16 autocast or float32, channels_last either way: precision.py); the losses and the gradient
 penalty are float32 whatever it is (losses.py). Under data-parallel training (distributed.py) each
 rank steps on its shard of the batch: the gradients are averaged over the ranks before the finite check
 and the optimiser step, and the ranks agree on skipping a step, so they stay identical.
@@ -26,7 +26,7 @@ from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
 from .generator import build_generator
 from .losses import critic_loss, generator_loss
-from .precision import autocast_for, memory_format_for, resolve_precision
+from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .settings import ModelSettings, TrainSettings
 
 ADAM_BETAS = (0.9, 0.999)
@@ -60,9 +60,8 @@ class BranchTrainer:
         ranks = current()
         self.shard = (ranks.rank, ranks.world)  # this process's slice of each global batch
         self.dtype = resolve_precision(settings.precision, device)
-        self.memory_format = memory = memory_format_for(device, self.dtype)
-        self.generator = build_generator(model.generator_config()).to(device, memory_format=memory)
-        self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=memory)
+        self.generator = build_generator(model.generator_config()).to(device, memory_format=MEMORY_FORMAT)
+        self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=MEMORY_FORMAT)
         self.patch_size = patch_size
         lr = settings.lr_g(branch)
         groups = self.generator.parameter_groups()
@@ -82,7 +81,7 @@ class BranchTrainer:
         return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
 
     def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        return {k: batch[k].to(self.device, non_blocking=True, memory_format=self.memory_format)
+        return {k: batch[k].to(self.device, non_blocking=True, memory_format=MEMORY_FORMAT)
                 for k in IMAGE_KEYS if k in batch}
 
     def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:

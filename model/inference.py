@@ -24,7 +24,7 @@ from admc.common.diff import differing_keys
 from .exposure import exposure_gain
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
-from .precision import autocast_for, memory_format_for, resolve_precision
+from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .tiling import receptive_radius, run_tiled
 from .transforms import (
     EPS,
@@ -96,7 +96,7 @@ class FullImageDenoiser:
     need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
     largest core edge run at once; `overlap` is the halo around each core, by default the largest
     receptive radius of the two generators, and a smaller one is refused (tiles would then differ
-    from the untiled image: seams). `dtype`: None = bfloat16 autocast (with channels_last) on CUDA and
+    from the untiled image: seams). `dtype`: None = bfloat16 autocast on CUDA and
     on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere (precision.resolve_precision).
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
@@ -116,7 +116,6 @@ class FullImageDenoiser:
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
         self.dtype = dtype or resolve_precision("auto", self.torch_device)
-        self.memory_format = memory_format_for(self.torch_device, self.dtype)
         self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
@@ -139,7 +138,7 @@ class FullImageDenoiser:
         self.normalize_exposure = normalize_exposure
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
-        return generator.to(self.torch_device, memory_format=self.memory_format).eval()
+        return generator.to(self.torch_device, memory_format=MEMORY_FORMAT).eval()
 
     def synchronize(self) -> None:
         if self.torch_device.type == "cuda":
@@ -191,7 +190,7 @@ class FullImageDenoiser:
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
-        return t.contiguous(memory_format=self.memory_format)
+        return t.contiguous(memory_format=MEMORY_FORMAT)
 
     def _bases(self, clean: dict[str, np.ndarray], albedo: np.ndarray, branches: tuple[str, ...]) -> dict[str, Tensor]:
         """A refiner's inputs from OIDN, per branch it runs, in that branch's log domain; {} for base "noisy"."""

@@ -2,7 +2,7 @@
 
 bfloat16 autocast keeps float32 master weights, optimiser states and (in losses.py) the losses and
 the gradient penalty; only conv/linear arithmetic runs in bf16, which has float32's exponent range,
-so no loss scaling is needed. oneDNN's bf16 convs want channels_last tensors (on CPUs and GPUs).
+so no loss scaling is needed. Every network tensor is channels_last, in either precision (MEMORY_FORMAT).
 """
 from __future__ import annotations
 
@@ -46,9 +46,10 @@ def autocast_for(device: torch.device, dtype: torch.dtype) -> contextlib.Abstrac
     return torch.autocast(device.type, dtype=dtype)
 
 
-def memory_format_for(device: torch.device, dtype: torch.dtype) -> torch.memory_format:
-    """channels_last for bf16 (oneDNN's fast layout) and on CUDA; NCHW for float32 on the CPU."""
-    return torch.channels_last if device.type == "cuda" or dtype != torch.float32 else torch.contiguous_format
+MEMORY_FORMAT = torch.channels_last
+"""The networks' layout in both precisions, on CPUs and GPUs: oneDNN's fast one for bf16 convs, and on the
+2-core CPU faster than NCHW for float32 too (the small model's training step 1.3x, a 1280x720 image
+2.4x, the paper-sized generator's forward pass 1.4x)."""
 
 
 def resolve_device(name: str) -> torch.device:

@@ -12,7 +12,7 @@ from torch import Tensor
 from admc.common.layout import ALBEDO
 from admc.common.metrics import psnr_torch, relmse_torch
 
-from .precision import autocast_for, memory_format_for
+from .precision import MEMORY_FORMAT, autocast_for
 from .generator import Generator
 from .transforms import EPS
 
@@ -32,11 +32,10 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     was_training = generator.training
     generator.eval()
     outputs = []
-    memory = memory_format_for(device, dtype)
     for i in range(0, len(val["noisy"]), batch_size):
-        noisy = val["noisy"][i:i + batch_size].to(device, memory_format=memory)
-        features = val["features"][i:i + batch_size].to(device, memory_format=memory)
-        base = val["base"][i:i + batch_size].to(device, memory_format=memory) if "base" in val else None
+        noisy = val["noisy"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT)
+        features = val["features"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT)
+        base = val["base"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT) if "base" in val else None
         with autocast_for(device, dtype):
             outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
