@@ -85,8 +85,8 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
         for precision, trainer in trainers.items():
             times[precision].append(timed_step(trainer, batch, device))
     medians = {p: statistics.median(t) for p, t in times.items()}
+    step = "G, L1 only" if args.l1_only else "G + critic + GP"
     for precision, seconds in medians.items():
-        step = "G, L1 only" if args.l1_only else "G + critic + GP"
         print(f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
               f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
               f"({step}, {device}{', compiled G' if args.compile else ''})", flush=True)
