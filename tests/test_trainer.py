@@ -197,6 +197,8 @@ def test_bfloat16_steps_run_in_bf16_and_keep_float32_weights_and_losses(store):
         assert trainer.generator.training and trainer.critic.training
         for net in (trainer.generator, trainer.critic):
             assert {p.dtype for p in net.parameters()} == {torch.float32}  # master weights
+            kernels = [p for p in net.parameters() if p.dim() == 4]
+            assert kernels and all(p.is_contiguous(memory_format=torch.channels_last) for p in kernels)
         for opt in trainer.optimizers.values():
             assert {v.dtype for st in opt.state.values() for k, v in st.items() if k != "step"} == {torch.float32}
     (low, fake), (exact, _) = runs["bfloat16"], runs["float32"]
