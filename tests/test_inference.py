@@ -316,3 +316,54 @@ def test_denoiser_in_bfloat16_tiles_like_the_untiled_image():
     for a, b in ((diffuse_forward(tiled.diffuse, albedo), diffuse_forward(untiled.diffuse, albedo)),
                  (specular_forward(tiled.specular), specular_forward(untiled.specular))):
         assert np.abs(a - b).max() <= 2 * BF16_U * np.abs(b).max()
+
+
+class FeatureEcho(nn.Module):
+    """A generator stand-in that records the features it is called with and passes its input through."""
+
+    def __init__(self, noise_input: bool):
+        super().__init__()
+        self.config = GeneratorConfig(noise_input=noise_input)
+        self.seen = []
+
+    def forward(self, noisy, features):
+        self.seen.append(features.clone())
+        return noisy.clone()
+
+
+def test_noise_input_weights_read_each_branchs_variance_as_its_noise_map():
+    from admc.model.transforms import diffuse_noise, specular_noise
+
+    layers = render_layers(12, 10)
+    rng = np.random.default_rng(3)
+    layers["diffuse_var"] = rng.random((12, 10, 3), dtype=np.float32) * 0.1
+    layers["specular_var"] = rng.random((12, 10, 3), dtype=np.float32) * 0.1
+    diffuse, specular = FeatureEcho(noise_input=True), FeatureEcho(noise_input=True)
+    denoiser = FullImageDenoiser(diffuse, specular, overlap=0, normalize_exposure=False)
+    denoiser(layers)
+    (d,), (s,) = diffuse.seen, specular.seen
+    assert d.shape == s.shape == (1, 8, 12, 10)
+    torch.testing.assert_close(d[0, :7], s[0, :7])
+    want_d = diffuse_noise(layers["diffuse_var"], layers["diffuse"], layers["albedo"])
+    want_s = specular_noise(layers["specular_var"], layers["specular"])
+    np.testing.assert_array_equal(d[0, 7].numpy(), want_d[..., 0])
+    np.testing.assert_array_equal(s[0, 7].numpy(), want_s[..., 0])
+
+    plain = FeatureEcho(noise_input=False)
+    FullImageDenoiser(plain, None, overlap=0)(layers)
+    assert plain.seen[0].shape[1] == 7  # weights without the noise input never see it
+
+
+def test_noise_input_weights_name_the_variance_layers_an_input_lacks():
+    denoiser = FullImageDenoiser(FeatureEcho(True), FeatureEcho(True), overlap=0, source="w.pt")
+    layers = render_layers(8, 8)
+    assert denoiser.missing_layers(layers) == ["diffuse_var", "specular_var"]
+    assert denoiser.missing_layers({k: v for k, v in layers.items() if k != "specular"}) == ["diffuse_var"]
+    with pytest.raises(KeyError, match="lacks layer.s. diffuse_var, specular_var, which w.pt read"):
+        denoiser(layers)
+    layers["diffuse_var"] = np.full((8, 8, 3), np.nan, np.float32)
+    layers["specular_var"] = np.zeros((8, 8, 3), np.float32)
+    result = denoiser(layers)  # a NaN variance is repaired like any layer, and said
+    assert result.sanitized["diffuse_var"] == {"nan": 8 * 8 * 3} and np.isfinite(result.image).all()
+    with pytest.raises(ValueError, match="'specular_var' has shape"):
+        denoiser(dict(layers, specular_var=layers["specular_var"][:4]))
