@@ -220,7 +220,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             if missing:
                 raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)}, which the weights "
                                         f"{model.source} read (model.noise_input: the variance of each pixel's "
-                                        "mean, as `admc-pipe render` writes in its multi-layer EXRs)")
+                                        "mean, as `admc-pipe render` writes in its multi-layer EXRs); without "
+                                        "it, use weights without that input (--set model.noise_input=false "
+                                        "picks the shipped ones)")
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
             if len(inputs) == 1:

@@ -187,20 +187,28 @@ def sanitize_variance(variance: np.ndarray) -> tuple[np.ndarray, dict[str, int]]
     return clean.astype(np.float32, copy=False), counts
 
 
+NOISE_STD_UNIT = 1e-3
+"""The noise map's unit: a standard deviation of 0.001 in the log domain, about what a 64-spp studio
+render's flat regions carry. The map is log1p(std / unit) / log1p(1 / unit)."""
+
+
 def noise_forward(variance: np.ndarray, radiance: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
     """One branch's per-pixel noise level (H, W, 1) in its own log domain, for model.noise_input.
 
     `variance` is the render's variance of the pixel mean of `radiance` (both linear, (H, W, 3));
     `scale` is what the log domain divides by: albedo + eps for diffuse, 1 for specular. By the delta
     method, d log1p(x / s) = dx / (x + s), so the standard deviation the network's input carries is
-    sqrt(variance) / (radiance + s); its mean over RGB is log1p-compressed (fireflies reach
-    sqrt(spp)). A nearly converged pixel reads ~0: the network can tell it has little left to remove.
-    NaN and negative variances count as 0.
+    std = sqrt(variance) / (radiance + s), averaged over RGB. The map is logarithmic in it,
+    log1p(std / NOISE_STD_UNIT) / log1p(1 / NOISE_STD_UNIT): 0 where converged, 1 at std 1, and a step
+    of ~0.1 per halving in between, so 4 and 64 spp differ by a signal the size of the other features'
+    (a linear map of std, mostly below 0.05, gave a weight that starts at 0 almost nothing to learn
+    from). NaN and negative variances count as 0.
     """
     var = np.nan_to_num(np.asarray(variance, dtype=np.float64), nan=0.0, posinf=NOISE_VARIANCE_MAX, neginf=0.0)
     x = np.nan_to_num(np.asarray(radiance, dtype=np.float64), nan=0.0, posinf=RADIANCE_MAX, neginf=0.0)
     std = np.sqrt(np.clip(var, 0.0, NOISE_VARIANCE_MAX)) / (np.clip(x, 0.0, RADIANCE_MAX) + scale)
-    return np.log1p(std.mean(axis=-1, keepdims=True)).astype(np.float32)
+    level = np.log1p(std.mean(axis=-1, keepdims=True) / NOISE_STD_UNIT) / np.log1p(1.0 / NOISE_STD_UNIT)
+    return level.astype(np.float32)
 
 
 def diffuse_noise(variance: np.ndarray, diffuse: np.ndarray, albedo: np.ndarray) -> np.ndarray:

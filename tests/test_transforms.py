@@ -178,7 +178,8 @@ def test_noise_level_is_the_log_domain_std_of_a_pixel_mean():
     variance = np.full((1, 1, 3), samples.var(axis=1, ddof=1).mean() / spp)
     level = T.noise_forward(variance, np.full((1, 1, 3), radiance), scale)
     assert level.shape == (1, 1, 1) and level.dtype == np.float32
-    assert np.expm1(level[0, 0, 0]) == pytest.approx(empirical, rel=0.03)  # 20000 draws: ~1% sampling error
+    std = np.expm1(level[0, 0, 0] * np.log1p(1 / T.NOISE_STD_UNIT)) * T.NOISE_STD_UNIT
+    assert std == pytest.approx(empirical, rel=0.03)  # 20000 draws: ~1% sampling error
 
 
 def test_noise_maps_of_the_two_branches_use_their_own_log_domains():
@@ -187,9 +188,14 @@ def test_noise_maps_of_the_two_branches_use_their_own_log_domains():
     albedo = np.array([[[0.5, 0.0, 1.0]]])
     diffuse = np.sqrt(var) / (x + np.clip(albedo, 0, 1) + T.EPS)
     specular = np.sqrt(var) / (x + 1.0)
-    assert T.diffuse_noise(var, x, albedo)[0, 0, 0] == pytest.approx(np.log1p(diffuse.mean()), rel=1e-6)
-    assert T.specular_noise(var, x)[0, 0, 0] == pytest.approx(np.log1p(specular.mean()), rel=1e-6)
+    unit = T.NOISE_STD_UNIT
+    assert T.diffuse_noise(var, x, albedo)[0, 0, 0] == pytest.approx(
+        np.log1p(diffuse.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
+    assert T.specular_noise(var, x)[0, 0, 0] == pytest.approx(
+        np.log1p(specular.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
     assert T.specular_noise(np.zeros_like(var), x)[0, 0, 0] == 0.0  # converged: nothing left to remove
+    one = T.specular_noise(np.full((1, 1, 3), 4.0), np.ones((1, 1, 3)))  # std 2 / (1 + 1) = 1
+    assert one[0, 0, 0] == pytest.approx(1.0, rel=1e-6)
 
 
 def test_noise_map_and_variance_sanitizing_stay_finite_on_hostile_values():
