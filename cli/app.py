@@ -216,13 +216,6 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             if model is None:  # after the first input checks out
                 model = load_model(cfg, weights, device, tile)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
-            missing = model.missing_layers(source.layers)
-            if missing:
-                raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)}, which the weights "
-                                        f"{model.source} read (model.noise_input: the variance of each pixel's "
-                                        "mean, as `admc-pipe render` writes in its multi-layer EXRs); without "
-                                        "it, use weights without that input (--set model.noise_input=false "
-                                        "picks the shipped ones)")
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
             if len(inputs) == 1:

@@ -31,18 +31,13 @@ from .transforms import (
     RADIANCE_MAX,
     diffuse_forward,
     diffuse_inverse,
-    diffuse_noise,
     features,
     sanitize,
-    sanitize_variance,
     specular_forward,
     specular_inverse,
-    specular_noise,
 )
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
-VARIANCE_LAYERS = {"diffuse_var": 3, "specular_var": 3}
-"""Optional: what weights with model.noise_input read (the variance of each pixel's mean)."""
 MISSING_DEPTH = 1.0
 """Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
 environment pixels (no geometry information), and coverage 1."""
@@ -152,23 +147,9 @@ class FullImageDenoiser:
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
         return self(layers).image
 
-    def _reads_noise(self, branch: str) -> bool:
-        return getattr(getattr(self.generators[branch], "config", None), "noise_input", False)
-
-    def missing_layers(self, layers: dict[str, np.ndarray]) -> list[str]:
-        """The variance layers these weights read (model.noise_input) that `layers` lacks, for the branches
-        that would run on them."""
-        branches = ["diffuse"] + (["specular"] if "specular" in layers and "specular" in self.generators else [])
-        return [f"{b}_var" for b in branches if self._reads_noise(b) and f"{b}_var" not in layers]
-
     def __call__(self, layers: dict[str, np.ndarray]) -> DenoiseResult:
-        """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays, and
-        diffuse_var [and specular_var] (the variance of each pixel's mean) for weights with model.noise_input."""
+        """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays."""
         start = time.perf_counter()
-        missing = self.missing_layers(layers)
-        if missing:
-            raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)}, which {self.source or 'these weights'} "
-                           "read (model.noise_input: the variance of each pixel's mean, as `admc-pipe render` writes)")
         clean, sanitized = sanitize_layers(layers)
         albedo = clean["albedo"]
         run_specular = "specular" in clean and "specular" in self.generators
@@ -181,9 +162,7 @@ class FullImageDenoiser:
         inputs = {"diffuse": diffuse_forward(exposed["diffuse"], albedo)}
         if run_specular:
             inputs["specular"] = specular_forward(exposed["specular"])
-        feats = features(clean["normal"], clean["depth"], albedo, clean["coverage"])
-        branch_features = {branch: self._tensor(self._with_noise(branch, feats, exposed, albedo, gain))
-                           for branch in inputs}
+        feats = self._tensor(features(clean["normal"], clean["depth"], albedo, clean["coverage"]))
         base_start = time.perf_counter()
         bases = self._bases(exposed, albedo, tuple(inputs))
         base_seconds = time.perf_counter() - base_start
@@ -192,8 +171,7 @@ class FullImageDenoiser:
         net_start = time.perf_counter()
         outputs, nonfinite, tiles = {}, 0, 1
         for branch, log_input in inputs.items():
-            out, tiles = self._run(self.generators[branch], self._tensor(log_input), branch_features[branch],
-                                   bases.get(branch))
+            out, tiles = self._run(self.generators[branch], self._tensor(log_input), feats, bases.get(branch))
             nonfinite += int((~torch.isfinite(out)).sum())
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
@@ -209,17 +187,6 @@ class FullImageDenoiser:
             nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds, base_seconds=base_seconds,
             exposure_gain=gain, seconds=time.perf_counter() - start,
         )
-
-    def _with_noise(self, branch: str, feats: np.ndarray, exposed: dict[str, np.ndarray], albedo: np.ndarray,
-                    gain: float) -> np.ndarray:
-        """The features a branch's generator reads: + its noise map for model.noise_input, from the exposed
-        radiance (a variance scales with the square of the exposure)."""
-        if not self._reads_noise(branch):
-            return feats
-        variance = exposed[f"{branch}_var"] * np.float32(gain) ** 2
-        noise = (diffuse_noise(variance, exposed["diffuse"], albedo) if branch == "diffuse"
-                 else specular_noise(variance, exposed["specular"]))
-        return np.concatenate([feats, noise], axis=-1)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
@@ -264,12 +231,11 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
     if missing:
         raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)} (has {', '.join(sorted(layers))})")
     channels = {"diffuse": 3, "specular": 3, "albedo": 3, "normal": 3, "depth": 1, "coverage": 1}
-    shapes = {**channels, **VARIANCE_LAYERS}
     size = np.shape(layers["diffuse"])[:2]
     for name, array in layers.items():
-        if name in shapes and np.shape(array) != (*size, shapes[name]):
+        if name in channels and np.shape(array) != (*size, channels[name]):
             raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(array)}, "
-                             f"expected {(*size, shapes[name])} to match diffuse")
+                             f"expected {(*size, channels[name])} to match diffuse")
     if size[0] < 1 or size[1] < 1:
         raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
     filled = dict(layers)
@@ -279,12 +245,6 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
     for name in channels:
         if name in filled:
             clean[name], counts = sanitize(filled[name], name)
-            nonzero = {kind: n for kind, n in counts.items() if n}
-            if nonzero:
-                report[name] = nonzero
-    for name in VARIANCE_LAYERS:
-        if name in filled:
-            clean[name], counts = sanitize_variance(filled[name])
             nonzero = {kind: n for kind, n in counts.items() if n}
             if nonzero:
                 report[name] = nonzero

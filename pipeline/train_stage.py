@@ -34,14 +34,8 @@ def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
 
 
 def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
-    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json; for a
-    model.noise_input without shipped weights of its own, those of the same architecture without it
-    (fine-tuning then adds the input with zero weights, which computes what they did: resume.load_init)."""
-    shipped = _shipped(weights_dir)
-    exact = next((path for path, saved in shipped if saved == model), None)
-    if exact is None and model.noise_input:
-        return next((path for path, saved in shipped if saved == dataclasses.replace(model, noise_input=False)), None)
-    return exact
+    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
+    return next((path for path, saved in _shipped(weights_dir) if saved == model), None)
 
 
 def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> str:

@@ -37,7 +37,6 @@ def test_store_rows_equal_the_transformed_exr_crops(built):
         reader_rows = 0
         group = f"{summary['split']}/{summary['scene_id']}"
         scene = patches.PatchReader(result.store, summary["split"])
-        with_noise = patches.PatchReader(result.store, summary["split"], noise=True)
         rows = [i for i in range(len(scene)) if scene.locate(i)[0] == summary["scene_id"]]
         for i in rows:
             row = scene[i]
@@ -48,11 +47,6 @@ def test_store_rows_equal_the_transformed_exr_crops(built):
             np.testing.assert_array_equal(row["noisy"], want.astype(np.float16).astype(np.float32))
             feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
             np.testing.assert_array_equal(row["features"], feats[crop].transpose(2, 0, 1).astype(np.float16))
-            # model.noise_input reads the render's variance as a noise map, appended to the features
-            noise = tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], layers["albedo"])
-            features = with_noise[i]["features"]
-            np.testing.assert_array_equal(features[:-1], row["features"])
-            np.testing.assert_array_equal(features[-1:], noise[crop].transpose(2, 0, 1).astype(np.float16))
             reader_rows += 1
         assert reader_rows == summary["rows"] == 3 * 2
 
@@ -126,7 +120,6 @@ def _layers(rng, size, specular=True, poison=False):
         layers["normal"][3, 3] = np.nan
         layers["depth"][4, 4] = np.inf
         layers["coverage"][5:, :4] = 0.0  # environment-only pixels
-        layers["diffuse_var"][7, 7] = [np.nan, np.inf, -1.0]
         if specular:
             layers["specular"][6, 6] = -np.inf
     return layers
@@ -158,8 +151,7 @@ def test_nan_inf_and_huge_pixels_are_handled_and_reported(tmp_path, specular):
     group = zarr.open_group(str(store / "train" / "poisoned"), mode="r")
     for name in group.array_keys():
         assert np.isfinite(group[name][...].astype(np.float32)).all(), name
-    assert ("noisy_specular" in group) == ("noise_specular" in group) == specular
-    assert "noise_diffuse" in group
+    assert ("noisy_specular" in group) == specular
     reader = patches.PatchReader(store, "train", branch="specular")
     assert len(reader) == (4 if specular else 0), "a scene without specular gives no specular patches"
 

@@ -308,30 +308,3 @@ def test_a_store_of_an_older_format_is_refused_with_what_to_do(tmp_path):
         with pytest.raises(P.PatchStoreError, match=r"format_version 1, this code reads 2; written by an older "
                                                     r"admc: move it away .* run `admc-pipe dataset`"):
             opening()
-
-
-def test_noise_maps_come_per_branch_and_join_the_features_only_when_asked(store):
-    with_noise = synthetic_scene(5)
-    n = len(with_noise["spp"])
-    rng = np.random.default_rng(5)
-    for branch in ("diffuse", "specular"):
-        with_noise[f"noise_{branch}"] = rng.uniform(0, 1, (n, 1, PATCH, PATCH)).astype(np.float16)
-    P.write_scene(store, "train", "noisy-a", with_noise, scene_attrs("noisy-a"))
-    for branch in ("diffuse", "specular"):
-        plain, read = P.PatchReader(store, "train", branch=branch), P.PatchReader(store, "train", branch=branch, noise=True)
-        assert plain[1]["features"].shape == (7, PATCH, PATCH)
-        np.testing.assert_array_equal(read[1]["features"][:7], plain[1]["features"])
-        np.testing.assert_array_equal(read[1]["features"][7], with_noise[f"noise_{branch}"][1, 0].astype(np.float32))
-
-    only_diffuse = {k: v for k, v in with_noise.items() if k != "noise_specular"}
-    with pytest.raises(P.PatchStoreError, match="missing array 'noise_specular'"):
-        P.write_scene(store, "train", "x", only_diffuse, scene_attrs("x"))
-    no_specular = {k: v for k, v in synthetic_scene(6, specular=False).items()}
-    no_specular.update({k: with_noise[k] for k in ("noise_diffuse", "noise_specular")})
-    with pytest.raises(P.PatchStoreError, match="noise_specular given for a scene without specular arrays"):
-        P.write_scene(store, "train", "x", no_specular, scene_attrs("x"))
-
-    write_synthetic(store, "train", "older", seed=7)  # tiled before noise maps existed
-    assert len(P.PatchReader(store, "train")) == 2 * n  # still trains every model that does not read them
-    with pytest.raises(P.PatchStoreError, match=r"scene train/older has no noise maps.*admc-pipe dataset"):
-        P.PatchReader(store, "train", noise=True)

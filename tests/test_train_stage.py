@@ -168,21 +168,6 @@ def test_the_default_config_finds_the_shipped_weights_and_they_load():
     assert set(denoiser.generators) == {"diffuse", "specular"}
 
 
-def test_a_noise_input_model_without_weights_of_its_own_starts_from_those_without_it(tmp_path):
-    import dataclasses
-
-    plain = load_config().model
-    noise = dataclasses.replace(plain, noise_input=True)
-    entries = [{"file": "plain.pt", "model": dataclasses.asdict(plain)}]
-    (tmp_path / "manifest.json").write_text(json.dumps({"weights": entries}))
-    assert shipped_weights(noise, tmp_path) == tmp_path / "plain.pt"  # fine-tuning adds the input (load_init)
-    assert shipped_weights(dataclasses.replace(noise, channels=24), tmp_path) is None
-    entries.append({"file": "noise.pt", "model": dataclasses.asdict(noise)})
-    (tmp_path / "manifest.json").write_text(json.dumps({"weights": entries}))
-    assert shipped_weights(noise, tmp_path) == tmp_path / "noise.pt"
-    assert shipped_weights(plain, tmp_path) == tmp_path / "plain.pt"  # an input is never dropped
-
-
 def test_finetune_names_how_the_config_differs_from_the_shipped_weights(tmp_path):
     """A [model] the shipped weights do not have: the message names each differing key and its shipped value."""
     out = cli("train", "--stage", "finetune", "--set", "model.backbone=unet", "--set", "model.channels=24",

@@ -290,27 +290,6 @@ def test_finetune_starts_from_exported_weights(store, tmp_path):
         train(store, tmp_path / "none", settings, TINY, stage="finetune", progress=False)
 
 
-def test_finetune_adds_the_noise_input_to_weights_trained_without_it(store, tmp_path):
-    pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY, progress=False)
-    shipped = load_weights(pre.weights)["branches"]
-    noise_model = dataclasses.replace(TINY, noise_input=True)
-    settings = dataclasses.replace(SETTINGS, steps=1, val_every=0, l1_warmup_steps=1, head_tail_start_step=100,
-                                   lr_g_diffuse=1e-12, lr_g_specular=1e-12)
-    fine = train(store, tmp_path / "fine", settings, noise_model, stage="finetune", init_from=pre.weights,
-                 progress=False)
-    state = load_checkpoint(fine.checkpoint)
-    assert state["model"]["noise_input"] is True
-    for branch in ("diffuse", "specular"):
-        old = shipped[branch]["generator"]["encoder.layers.0.weight"].float()
-        new = state["branches"][branch]["generator"]["encoder.layers.0.weight"]
-        assert new.shape == (old.shape[0], 8, 3, 3)
-        # one Adam step of 5e-12 (the body's lr) from the saved weights and from 0 on the noise channel
-        torch.testing.assert_close(new[:, :7], old, rtol=0, atol=1e-10)
-        assert new[:, 7].abs().max() < 1e-10
-    with pytest.raises(ValueError, match=r"differ from the configured ones in \['noise_input'\]"):
-        train(store, tmp_path / "back", settings, TINY, stage="finetune", init_from=fine.weights, progress=False)
-
-
 def test_checkpoint_round_trip_and_clear_errors(tmp_path):
     state = {"step": 3, "w": torch.randn(4, 5), "nested": {"t": (1, 2.5, "x"), "milestones": [5, 9]}}
     path = tmp_path / "ckpt.pt"

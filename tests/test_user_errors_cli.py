@@ -208,31 +208,3 @@ def test_a_damaged_render_sidecar_is_named(tiny_workdir, tmp_path):
     sidecar = next((tmp_path / "cache" / "render").glob("*/render.json"))
     sidecar.write_text(sidecar.read_text()[:20])
     refused(run("render", *flags(settings(tmp_path))), f"{sidecar}: not valid JSON")
-
-
-def test_noise_input_weights_name_the_variance_layer_an_input_lacks(tmp_path):
-    import numpy as np
-
-    from admc.model.resume import _with_noise_input
-    from admc.stores.exr import read_exr, write_exr
-
-    shipped = load_weights(SHIPPED)
-    model = dataclasses.replace(ModelSettings.from_saved(shipped["metadata"]["model"]), noise_input=True)
-    branches = {b: {**nets, "generator": _with_noise_input(nets["generator"], model)}
-                for b, nets in shipped["branches"].items()}
-    weights = tmp_path / "noise.pt"
-    export_weights(weights, branches, {**shipped["metadata"], "model": dataclasses.asdict(model)})
-
-    frame = _oidn_style_input(tmp_path)  # OIDN-style files carry no variance
-    out = run("denoise", str(frame), "--weights", str(weights))
-    refused(out, f"{frame}: lacks layer(s) diffuse_var, which the weights {weights} read")
-    assert not list(tmp_path.glob("*denoised*"))
-
-    rng = np.random.default_rng(0)
-    layers = {name: rng.uniform(0, 1, (8, 8, 3)).astype(np.float32)
-              for name in ("diffuse", "albedo", "normal", "diffuse_var")}
-    render = tmp_path / "render.exr"
-    write_exr(render, layers, precision="float")
-    out = run("denoise", str(render), "--weights", str(weights))
-    assert out.returncode == 0, out.stderr
-    assert np.isfinite(read_exr(tmp_path / "render.denoised.exr")["diffuse"]).all()

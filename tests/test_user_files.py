@@ -28,8 +28,6 @@ def buffers(seed=0):
         "normal": rng.uniform(-1, 1, size=(H, W, 3)).astype(np.float32),
         "depth": rng.uniform(1, 9, size=(H, W, 1)).astype(np.float32),
         "coverage": np.ones((H, W, 1), dtype=np.float32),
-        "diffuse_var": rng.random((H, W, 3), dtype=np.float32) * 0.1,  # read for model.noise_input weights
-        "specular_var": rng.random((H, W, 3), dtype=np.float32) * 0.1,
     }
 
 

@@ -96,7 +96,6 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
                   oidn_base: bool) -> dict[str, np.ndarray]:
     """One spp level's whole images in the store's transforms, (H, W, C) per row array. `ref_diffuse` is
     linear; `ref_specular` is already transformed (it does not depend on the level), None without specular.
-    Each branch's noise map comes from the render's variance buffer (what model.noise_input reads).
 
     The reference diffuse is demodulated by this level's own albedo, the one inference has, so
     expm1(output) * (noisy albedo + eps) targets the reference radiance exactly even where a low-spp
@@ -105,12 +104,10 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
     albedo = layers["albedo"]
     images = {"noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),
               "ref_diffuse": tf.diffuse_forward(ref_diffuse, albedo),
-              "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"]),
-              "noise_diffuse": tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], albedo)}
+              "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"])}
     if ref_specular is not None:
         images["noisy_specular"] = tf.specular_forward(layers["specular"])
         images["ref_specular"] = ref_specular
-        images["noise_specular"] = tf.specular_noise(layers["specular_var"], layers["specular"])
     if oidn_base:
         bases = oidn_bases(layers)
         images["base_diffuse"] = tf.diffuse_forward(bases["diffuse"], albedo)

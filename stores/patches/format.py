@@ -25,9 +25,6 @@ ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": N_FEATURES}
 CROP_IMAGES = {"ref_diffuse": 3, "ref_specular": 3}
 BASE_IMAGES = {"base_diffuse": 3, "base_specular": 3}
 """Optional row arrays (tile.oidn_base): OIDN's output for the row, what model.base = "oidn" refines."""
-NOISE_IMAGES = {"noise_diffuse": 1, "noise_specular": 1}
-"""Row arrays of stores tiled since model.noise_input: each branch's noise level (transforms.noise_forward).
-Optional, so older stores still train every model that does not read them."""
 SPECULAR_ARRAYS = ("noisy_specular", "ref_specular")
 REQUIRED_ROOT_ATTRS = ("transform", "patch_size")
 REQUIRED_SCENE_ATTRS = ("scene_hash", "image_size", "sanitization")
@@ -42,8 +39,6 @@ LAYOUT = {
     "ref_specular": "transform.specular of the reference", "origin": "(y, x) of the crop in the image",
     "base_diffuse": "optional, per row: transform.diffuse of OIDN's denoised noisy diffuse (scene attr 'base')",
     "base_specular": "optional, per row: transform.specular of OIDN's denoised noisy specular",
-    "noise_diffuse": "optional, per row: the noisy diffuse's noise level (model/transforms.diffuse_noise)",
-    "noise_specular": "optional, per row: the noisy specular's noise level (model/transforms.specular_noise)",
 }
 
 
