@@ -165,7 +165,8 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     if result.last_losses:
         console.print(_train_table(stage.value, result))
     else:  # the checkpoint already held every step: say so rather than print an empty table
-        chosen = ", ".join(f"{b} step {s['step']} (val relMSE {s['val_relmse']:.4g})" for b, s in result.selected.items())
+        chosen = ", ".join(f"{b} step {s['step']} (" + ", ".join(f"{k} {v:.4g}" for k, v in s.items() if k != "step") + ")"
+                           for b, s in result.selected.items())
         console.print(f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps to train "
                       f"longer)" + (f"; the weights hold {chosen}" if chosen else ""), markup=False)
     if result.skipped_branches:

@@ -19,6 +19,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
+from admc.common.layout import ALBEDO
 from admc.stores.checkpoints import load_network
 
 from .critic import Critic
@@ -28,6 +29,7 @@ from .generator import build_generator
 from .losses import critic_loss, generator_loss
 from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .settings import ModelSettings, TrainSettings
+from .transforms import EPS
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
@@ -102,6 +104,10 @@ class BranchTrainer:
         opt.step()
         return True, parts
 
+    def _linear_scale(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """What turns expm1 of this branch's values into linear radiance: albedo + eps for diffuse."""
+        return batch["features"][:, ALBEDO] + EPS if self.branch == "diffuse" else None
+
     def _generator_update(self, step: int, batch: dict[str, Tensor], adversarial: bool
                           ) -> tuple[bool, dict[str, Tensor]]:
         for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
@@ -111,7 +117,7 @@ class BranchTrainer:
             fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
-                                         adversarial, s.l1_floor)
+                                         adversarial, s.l1_floor, s.ssim_weight, self._linear_scale(batch))
         parts["generator_loss"] = loss.detach()
         if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts

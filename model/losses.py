@@ -1,6 +1,7 @@
 """Generator and WGAN-GP critic losses, weighted as in the authors' code.
 
-Generator: l1_weight * L1 + adv_weight * (-mean D(fake)), 1 : 5e-3 (the paper's 200:1).
+Generator: l1_weight * L1 + adv_weight * (-mean D(fake)), 1 : 5e-3 (the paper's 200:1), plus, when
+ssim_weight > 0, ssim_weight * (1 - SSIM) of the display images that Table 1's 1-SSIM compares.
 Critic: (mean D(fake) - mean D(real)) / 2 + gp_weight * GP. The 1/2 on the Wasserstein term is the
 authors' (it averages their "real" and "fake" loss terms); the penalty is not halved.
 All losses are computed in float32, whatever precision the networks ran in.
@@ -12,6 +13,10 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from admc.common.metrics import GAMMA, LDR_RANGE, ssim_map_torch
+
+DISPLAY_OFFSET = 1e-5  # linear; keeps the gamma curve's slope finite at 0 (below 8-bit level 1, 5.1e-6)
 
 
 def log_floor(y: Tensor, floor: float) -> Tensor:
@@ -28,26 +33,53 @@ def log_floor(y: Tensor, floor: float) -> Tensor:
     return torch.where(y >= 0, upper, math.log(floor) + y / floor)
 
 
+def display(linear: Tensor) -> Tensor:
+    """The 8-bit display values (0..255, unrounded) of linear radiance, as metrics.to_ldr encodes it:
+    clipped to [0, 1] and gamma-encoded, the curve shifted by DISPLAY_OFFSET so that its slope stays finite."""
+    v = linear.clamp(0.0, 1.0)
+    return LDR_RANGE * ((v + DISPLAY_OFFSET) ** (1.0 / GAMMA) - DISPLAY_OFFSET ** (1.0 / GAMMA))
+
+
+def display_ssim_loss(fake: Tensor, real: Tensor, linear_scale: Tensor | None = None) -> Tensor:
+    """1 - mean SSIM (metrics.ssim's window and constants) of the display images of log1p values `fake`
+    and `real`, made linear as expm1(.) * linear_scale (the diffuse branch's albedo + eps; None: 1).
+
+    Why: relMSE and the log-domain L1 barely see an error of a few 8-bit levels in a deep shadow, which
+    the gamma curve and SSIM's normalisation by local contrast make one of the largest in 1-SSIM.
+    """
+    fake_linear, real_linear = torch.expm1(fake.float()), torch.expm1(real.float())
+    if linear_scale is not None:
+        fake_linear, real_linear = fake_linear * linear_scale.float(), real_linear * linear_scale.float()
+    return 1.0 - ssim_map_torch(display(fake_linear), display(real_linear)).mean()
+
+
 def generator_loss(fake: Tensor, real: Tensor, critic_fake: Tensor | None, l1_weight: float = 1.0,
-                   adv_weight: float = 5e-3, adversarial: bool = True, l1_floor: float = 1.0
+                   adv_weight: float = 5e-3, adversarial: bool = True, l1_floor: float = 1.0,
+                   ssim_weight: float = 0.0, linear_scale: Tensor | None = None
                    ) -> tuple[Tensor, dict[str, Tensor]]:
-    """Total generator loss and its detached parts ("l1", and "adversarial" when on).
+    """Total generator loss and its detached parts ("l1", "ssim" when weighted, "adversarial" when on).
 
     `critic_fake` is D(fake) with the graph to the generator kept; `adversarial=False` is the
     paper's "L1 only" ablation, and then `critic_fake` may be None. The L1 term compares
-    log_floor(., l1_floor) of both (1.0: the networks' own log1p domain).
+    log_floor(., l1_floor) of both (1.0: the networks' own log1p domain); the SSIM term is
+    display_ssim_loss with `linear_scale`.
     """
     if fake.shape != real.shape:
         raise ValueError(f"generator_loss: fake {tuple(fake.shape)} and real {tuple(real.shape)} differ in shape")
     l1 = F.l1_loss(log_floor(fake.float(), l1_floor), log_floor(real.float(), l1_floor))
     parts = {"l1": l1.detach()}
+    total = l1_weight * l1
+    if ssim_weight > 0:
+        ssim = display_ssim_loss(fake, real, linear_scale)
+        parts["ssim"] = ssim.detach()
+        total = total + ssim_weight * ssim
     if not adversarial:
-        return l1_weight * l1, parts
+        return total, parts
     if critic_fake is None:
         raise ValueError("generator_loss: critic_fake is required when adversarial=True")
     adv = -critic_fake.float().mean()
     parts["adversarial"] = adv.detach()
-    return l1_weight * l1 + adv_weight * adv, parts
+    return total + adv_weight * adv, parts
 
 
 def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor, shard: tuple[int, int] = (0, 1)) -> Tensor:

@@ -2,8 +2,10 @@
 
 Each branch is validated on the same fixed val patches before its first step (the starting weights: the
 ones fine-tuning starts from, or an untrained network) and every val_every steps after; it keeps a CPU
-copy of its networks whenever its validation relMSE is the lowest so far. A run that peaks early ships
-the peak.
+copy of its networks whenever its validation value is the lowest so far. A run that peaks early ships
+the peak. The value (train.select_metric) is the mean relMSE, or "relmse+ssim": per patch, the mean of
+its relMSE and its 1-SSIM, each divided by the noisy input's mean over the val patches. relMSE alone is
+blind to an error of a few 8-bit levels in a deep shadow, which 1-SSIM counts among the largest.
 
 A run that starts from given weights (fine-tuning) must not ship something worse than them, and a mean
 over a few dozen val patches moves by a percent or more between two near-identical networks. So a step
@@ -21,7 +23,20 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-SELECTION_METRIC = "relmse"
+LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}
+
+
+def selection_values(metric: str, per_patch: dict[str, Tensor], scores: dict[str, float]) -> Tensor:
+    """The per-patch values that rank validated steps under `metric` (settings.SELECT_METRICS)."""
+    if metric == "relmse":
+        return per_patch["relmse"]
+    shares = [per_patch[k] / max(scores[f"noisy_{k}"], 1e-12) for k in ("relmse", "one_minus_ssim")]
+    return (shares[0] + shares[1]) / 2
+
+
+def selected_key(metric: str) -> str:
+    """The key of a selected step's value in a weights file's metadata: val_relmse, val_relmse_ssim."""
+    return "val_" + metric.replace("+", "_")
 
 
 @dataclass
@@ -56,11 +71,11 @@ def improvement_z(start: Tensor, candidate: Tensor) -> float:
 
 
 class BestNetworks:
-    """Per branch, the networks at the lowest validation relMSE seen so far (ties keep the earlier step);
+    """Per branch, the networks at the lowest validation value seen so far (ties keep the earlier step);
     with guarded starting weights, only among the steps that beat those by `min_z` standard errors."""
 
-    def __init__(self, min_z: float = 2.0) -> None:
-        self.min_z = min_z
+    def __init__(self, min_z: float = 2.0, metric: str = "relmse") -> None:
+        self.min_z, self.metric = min_z, metric
         self.best: dict[str, Best] = {}
         self.start: dict[str, Tensor] = {}  # per-patch values of the guarded starting weights
         self.unproven: dict[str, Unproven] = {}
@@ -96,22 +111,22 @@ class BestNetworks:
         return best.networks
 
     def summary(self, last_step: int, last: dict[str, float]) -> tuple[dict[str, dict], list[str]]:
-        """({branch: {"step", "val_relmse"}}, sentences for the user) for the weights this run ships."""
-        selected, notes = {}, []
+        """({branch: {"step", selected_key}}, sentences for the user) for the weights this run ships."""
+        selected, notes, label = {}, [], LABELS[self.metric]
         for branch, best in self.best.items():
-            selected[branch] = {"step": best.step, f"val_{SELECTION_METRIC}": best.value}
+            selected[branch] = {"step": best.step, selected_key(self.metric): best.value}
             unproven = self.unproven.get(branch)
             if best.step == 0 and unproven is not None and unproven.value < best.value:
                 gain = 100 * (1 - unproven.value / best.value)
                 notes.append(f"{branch}: step {unproven.step} was {gain:.2g}% below the starting weights on validation "
-                             f"(relMSE {unproven.value:.5g} against {best.value:.5g}), within the noise of the val "
+                             f"({label} {unproven.value:.5g} against {best.value:.5g}), within the noise of the val "
                              f"patches ({unproven.z:.2g} standard errors; train.select_z asks {self.min_z:g}); the "
                              f"weights file keeps the starting weights unchanged")
             elif best.step == 0 and last_step > 0:
-                notes.append(f"{branch}: no step beat the starting weights on validation (relMSE {best.value:.5g} "
+                notes.append(f"{branch}: no step beat the starting weights on validation ({label} {best.value:.5g} "
                              f"at step 0); the weights file keeps them unchanged")
             elif best.step != last_step and branch in last:
-                notes.append(f"{branch}: the weights file holds step {best.step} (validation relMSE "
+                notes.append(f"{branch}: the weights file holds step {best.step} (validation {label} "
                              f"{best.value:.5g}), better than the last step {last_step} ({last[branch]:.5g})")
         return selected, notes
 

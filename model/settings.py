@@ -16,6 +16,7 @@ from .generator import BACKBONES, MODES, MODULATED_MODES, GeneratorConfig
 
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
+SELECT_METRICS = ("relmse", "relmse+ssim")  # selection.selection_values
 STAGES = ("pretrain", "finetune")
 
 
@@ -104,11 +105,13 @@ class TrainSettings:
     lr_gamma: float = 0.5
     l1_weight: float = 1.0
     l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
+    ssim_weight: float = 0.0              # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
     adv_weight: float = 5e-3
     gp_weight: float = 10.0
     adversarial: bool = True
     val_every: int = 5_000                # 0 = no validation
     val_patches: int = 64
+    select_metric: str = "relmse"         # what ranks validated steps: relmse | relmse+ssim (selection.py)
     select_z: float = 2.0                 # a fine-tuning ships a step only this many standard errors better than
                                           # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -131,7 +134,7 @@ class TrainSettings:
         for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
-        for name in ("l1_weight", "adv_weight", "gp_weight", "select_z"):
+        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
         _require(self.lr_gamma <= 1, "lr_gamma", f"must be in (0, 1], got {self.lr_gamma!r}")
@@ -141,10 +144,13 @@ class TrainSettings:
         _require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
         _require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         _require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
+        _require(self.select_metric in SELECT_METRICS, "select_metric",
+                 f"{self.select_metric!r} is not one of {SELECT_METRICS}")
         _require(len(self.branches) > 0 and all(b in BRANCHES for b in self.branches)
                  and len(set(self.branches)) == len(self.branches),
                  "branches", f"must be distinct names from {BRANCHES}, got {list(self.branches)}")
-        _require(self.l1_weight > 0 or self.adversarial, "l1_weight", "is 0 and adversarial is off: nothing to train")
+        _require(self.l1_weight > 0 or self.ssim_weight > 0 or self.adversarial, "l1_weight",
+                 "and ssim_weight are 0 and adversarial is off: nothing to train")
 
     def lr_g(self, branch: str) -> float:
         return self.lr_g_diffuse if branch == "diffuse" else self.lr_g_specular

@@ -30,7 +30,7 @@ from .branch import BranchTrainer
 from .distributed import RankFailed, Ranks, broadcast_modules, check_world, current, rank_device
 from .data import branch_seed, load_rows, train_loader
 from .metrics_log import MetricsLog
-from .selection import SELECTION_METRIC, BestNetworks
+from .selection import BestNetworks, selection_values
 from .precision import precision_name, resolve_device
 from .progress import ProgressWindow
 from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
@@ -60,7 +60,7 @@ class TrainResult:
     last_losses: dict[str, dict[str, float]]
     validation: dict[str, dict[str, float]]
     notes: list[str] = field(default_factory=list)  # what the run has to say and has not shown yet
-    selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", "val_relmse"} of the shipped weights
+    selected: dict[str, dict] = field(default_factory=dict)  # branch -> {"step", selection.selected_key} shipped
     rank: int = 0  # the process that returns it; only rank 0's speaks for the run
 
 
@@ -133,7 +133,8 @@ class _Run:
             share = max(1, (os.cpu_count() or 1) // self.ranks.local_world)
             torch.set_num_threads(self.settings.threads or share)
         self.fingerprint = patches.fingerprint(self.store) if patches.exists(self.store) else None
-        self.best = BestNetworks(self.settings.select_z)
+        self.best = BestNetworks(self.settings.select_z, self.settings.select_metric)
+        self.last_selection: dict[str, float] = {}  # branch -> the last validation's mean selection value
 
     def say(self, message: str) -> None:
         """Show a note now under the progress bar, or (without one) keep it for the caller to report."""
@@ -232,8 +233,10 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
         run.validation[b], per_patch = validate(trainer.generator, rows, b, run.settings.batch_size, run.device,
                                                 trainer.dtype)
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
+        values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
+        run.last_selection[b] = float(values.mean())
         guard = step == 0 and run.init_from is not None  # fine-tuning: ship nothing that is not proven better
-        run.best.offer(b, step, per_patch, trainer.generator, trainer.critic, guard=guard)
+        run.best.offer(b, step, values, trainer.generator, trainer.critic, guard=guard)
 
 
 def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], start: int, resume: bool) -> None:
@@ -296,8 +299,7 @@ def _bad_step(run: _Run, branch: str, trainer: BranchTrainer, step: int, last_sa
 def _finish(run: _Run, start: int) -> TrainResult:
     """Write the shipped weights (each branch's best validated networks) and say which they are."""
     last_step = max(start, run.settings.steps)
-    selected, selection_notes = run.best.summary(last_step, {b: v[SELECTION_METRIC]
-                                                             for b, v in run.validation.items()})
+    selected, selection_notes = run.best.summary(last_step, run.last_selection)
     run.notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
     for note in selection_notes:
         log.info(note)

@@ -1,7 +1,7 @@
-"""Validation of one branch on fixed val patches: PSNR and relMSE in linear radiance.
+"""Validation of one branch on fixed val patches: PSNR, relMSE and 1-SSIM in linear radiance.
 
 The metrics are the evaluation's own (admc.common.metrics, their torch twins): relMSE on linear
-HDR values, PSNR on the 8-bit tone-mapped images. Both are computed per patch and averaged, for the
+HDR values, PSNR and 1-SSIM on the 8-bit tone-mapped images. Both are computed per patch and averaged, for the
 denoised output and, as the baseline, the noisy input.
 """
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from admc.common.layout import ALBEDO
-from admc.common.metrics import psnr_torch, relmse_torch
+from admc.common.metrics import one_minus_ssim_torch, psnr_torch, relmse_torch
 
 from .precision import MEMORY_FORMAT, autocast_for
 from .generator import Generator
@@ -25,9 +25,9 @@ def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
 
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
-             device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[dict[str, float], Tensor]:
-    """({"psnr", "relmse", "noisy_psnr", "noisy_relmse"[, "base_psnr", "base_relmse"]} averaged over the val
-    patches (base: OIDN's output, for a refiner), the output's relMSE per patch), the generator
+             device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[dict[str, float], dict[str, Tensor]]:
+    """({"psnr", "relmse", "one_minus_ssim", the same of "noisy_" and [of "base_"]} averaged over the val
+    patches (base: OIDN's output, for a refiner), the output's {"relmse", "one_minus_ssim"} per patch), the generator
     run in `dtype` as in training (and as the denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
@@ -43,11 +43,12 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     ref = to_linear(val["reference"], features, branch)
     out = to_linear(torch.cat(outputs), features, branch)
     noisy = to_linear(val["noisy"], features, branch)
-    per_patch = relmse_torch(out, ref)
-    scores = {"psnr": float(psnr_torch(out, ref).mean()), "relmse": float(per_patch.mean())}
+    per_patch = {"relmse": relmse_torch(out, ref), "one_minus_ssim": one_minus_ssim_torch(out, ref)}
+    scores = {"psnr": float(psnr_torch(out, ref).mean()), **{k: float(v.mean()) for k, v in per_patch.items()}}
     for name in ("noisy", "base"):  # what the generator starts from: the run must beat it
         if name in val:
             start = to_linear(val[name], features, branch)
             scores.update({f"{name}_psnr": float(psnr_torch(start, ref).mean()),
-                           f"{name}_relmse": float(relmse_torch(start, ref).mean())})
+                           f"{name}_relmse": float(relmse_torch(start, ref).mean()),
+                           f"{name}_one_minus_ssim": float(one_minus_ssim_torch(start, ref).mean())})
     return scores, per_patch

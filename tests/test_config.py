@@ -76,6 +76,8 @@ def test_model_and_train_sections_match_the_settings_factories():
     ("train.adversarial=1", "train.adversarial"),
     ("train.precision='float16'", "train.precision"),
     ("train.l1_floor=0", "train.l1_floor"),
+    ("train.ssim_weight=-0.5", "train.ssim_weight"),
+    ("train.select_metric='ssim'", "train.select_metric"),
 ])
 def test_model_and_train_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -1,11 +1,13 @@
-"""Generator L1 + adversarial loss, WGAN-GP critic loss and the float32 gradient penalty."""
+"""Generator L1 (+ display SSIM) + adversarial loss, WGAN-GP critic loss and the float32 gradient penalty."""
+import numpy as np
 import pytest
 import torch
 from torch import nn
 
+from admc.common import metrics
 from admc.model.critic import Critic, CriticConfig
 from admc.model.generator import Generator, GeneratorConfig
-from admc.model.losses import critic_loss, generator_loss, gradient_penalty, log_floor
+from admc.model.losses import critic_loss, display, display_ssim_loss, generator_loss, gradient_penalty, log_floor
 
 
 class LinearCritic(nn.Module):
@@ -107,6 +109,53 @@ def test_a_smaller_l1_floor_weighs_an_error_in_a_dark_pixel_more():
                                         for e in error)
         lo, hi = dark_over_bright
         assert lo <= on_dark.item() / on_bright.item() <= hi
+
+
+def _textured(level: float, shape=(1, 3, 32, 32), seed=0) -> torch.Tensor:
+    """log1p of linear radiance around `level` with +-20% texture: a patch that SSIM has structure to compare."""
+    texture = torch.rand(shape, generator=torch.Generator().manual_seed(seed))
+    return torch.log1p(level * (0.8 + 0.4 * texture))
+
+
+def test_display_matches_the_metrics_tone_map_to_within_its_offset():
+    linear = torch.tensor([0.0, 5.1e-6, 1e-3, 0.2, 1.0, 7.0], dtype=torch.float64)
+    rounded = metrics.to_ldr(linear.numpy().reshape(1, -1, 1)).ravel().astype(np.float64)
+    # the offset moves a value by at most (offset^(1/2.2)) * 255 = 1.6 levels, and only near 0
+    assert np.abs(display(linear).numpy() - rounded).max() <= 0.5 + 1.7
+    assert display(linear)[0] == 0 and display(linear)[-1] == display(linear)[-2]
+
+
+def test_the_display_ssim_term_weighs_a_darkened_shadow_like_a_darkened_grey_the_l1_does_not():
+    """The same 20% darkening, once of a deep shadow (linear 3e-4: 8-bit level ~5) and once of a mid-grey
+    patch (0.2): the log1p L1 sees the shadow's ~1000x less; the SSIM term of the display images, like
+    Table 1's 1-SSIM, sees the two alike (SSIM compares relative changes; its constants damp the darkest)."""
+    shadow, grey = _textured(3e-4), _textured(0.2)
+    darker = [torch.log1p(torch.expm1(x) * 0.8) for x in (shadow, grey)]
+    (l1_shadow, _), (l1_grey, _) = (generator_loss(d, x, None, adversarial=False) for d, x in zip(darker, (shadow, grey)))
+    ssim_shadow, ssim_grey = (display_ssim_loss(d, x) for d, x in zip(darker, (shadow, grey)))
+    assert l1_shadow < l1_grey / 100
+    assert ssim_grey / 2 < ssim_shadow < ssim_grey * 2
+    assert display_ssim_loss(shadow, shadow) == 0
+
+
+def test_the_ssim_term_has_finite_gradients_on_black_and_blown_out_pixels():
+    real = torch.cat([torch.zeros(1, 3, 16, 32), torch.full((1, 3, 16, 32), 3.0)], dim=2)  # log1p: 0 and 19
+    fake = (real + 0.01 * torch.randn_like(real)).clamp(min=0).requires_grad_(True)
+    albedo = torch.cat([torch.zeros(1, 3, 32, 16), torch.ones(1, 3, 32, 16)], dim=3)
+    loss, parts = generator_loss(fake, real, None, adversarial=False, ssim_weight=0.5, linear_scale=albedo + 0.00316)
+    loss.backward()
+    assert torch.isfinite(fake.grad).all() and fake.grad.abs().sum() > 0
+    assert set(parts) == {"l1", "ssim"}
+    assert loss.item() == pytest.approx(parts["l1"].item() + 0.5 * parts["ssim"].item(), rel=1e-6)
+
+
+def test_the_linear_scale_is_what_the_ssim_term_compares():
+    """Diffuse values are demodulated: the term compares expm1(.) * (albedo + eps), the display image."""
+    real, fake = _textured(0.5, seed=1), _textured(0.5, seed=2)
+    albedo = torch.rand(real.shape, generator=torch.Generator().manual_seed(3))
+    remodulated = [torch.log1p(torch.expm1(x) * albedo) for x in (fake, real)]
+    assert display_ssim_loss(fake, real, albedo).item() == pytest.approx(display_ssim_loss(*remodulated).item(), rel=1e-5)
+    assert display_ssim_loss(fake, real, albedo).item() != pytest.approx(display_ssim_loss(fake, real).item(), rel=1e-2)
 
 
 def test_critic_loss_is_half_the_negative_wasserstein_estimate_plus_weighted_gp():

@@ -100,9 +100,9 @@ def test_metric_table_carries_definitions_and_directions():
     assert "sigma 1.5" in by_key["one_minus_ssim"].definition
 
 
-def _batch(seed=0):
-    """(N, C, H, W) float64 pairs with highlights, exact matches and a NaN: what validation scores."""
-    pairs = [_pair((9, 7, 3), seed=seed + i) for i in range(3)]
+def _batch(seed=0, shape=(9, 7, 3)):
+    """(N, H, W, C) float64 pairs with highlights, exact matches and a NaN: what validation scores."""
+    pairs = [_pair(shape, seed=seed + i) for i in range(3)]
     x = np.stack([p[0] for p in pairs]).astype(np.float64)
     ref = np.stack([p[1] for p in pairs]).astype(np.float64)
     x[0, :2] *= 40.0                # beyond 1: clipped by the tone map, not by relMSE
@@ -124,6 +124,17 @@ def test_torch_metrics_equal_numpy_ones_per_sample():
         assert relmse[i] == pytest.approx(metrics.relmse(x[i], ref[i]), rel=1e-12)
         assert psnr[i] == pytest.approx(metrics.psnr(x[i], ref[i]), rel=1e-12)
     assert psnr[1] == metrics.PSNR_CAP_DB and relmse[1] == 0.0
+
+
+def test_torch_ssim_equals_the_numpy_one_per_sample():
+    import torch
+    x, ref = _batch(shape=(17, 13, 3))
+    tx, tref = torch.from_numpy(x).permute(0, 3, 1, 2), torch.from_numpy(ref).permute(0, 3, 1, 2)
+    ssim_error = metrics.one_minus_ssim_torch(tx, tref).tolist()
+    for i in range(len(x)):
+        # float64 on both sides; scipy's separable correlation and torch's conv2d sum in other orders
+        assert ssim_error[i] == pytest.approx(metrics.one_minus_ssim(x[i], ref[i]), abs=1e-12)
+    assert ssim_error[1] == 0.0 and min(ssim_error[0], ssim_error[2]) > 0.01
 
 
 def test_reinhard_compresses_highlights_before_the_tone_map():

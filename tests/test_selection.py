@@ -1,6 +1,7 @@
 """Training ships each branch's best networks by validation, not its last, and a fine-tuning that does
 not beat its starting weights by more than the val patches' noise ships them unchanged (real tiny store,
 real training steps)."""
+import csv
 import dataclasses
 import math
 import shutil
@@ -12,7 +13,7 @@ from torch import nn
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store
-from admc.model.selection import BestNetworks, improvement_z
+from admc.model.selection import BestNetworks, improvement_z, selection_values
 from admc.model.settings import ModelSettings, TrainSettings
 from admc.model.trainer import train
 from admc.stores.checkpoints import load_checkpoint, load_weights
@@ -132,3 +133,32 @@ def test_a_resumed_run_keeps_the_best_it_had_and_ships_what_one_run_ships(store,
         for net in ("generator", "critic"):
             for name, value in a["branches"][branch][net].items():
                 assert torch.equal(b["branches"][branch][net][name], value), (branch, net, name)
+
+
+def test_the_relmse_ssim_value_weighs_each_error_by_the_inputs_mean():
+    per_patch = {"relmse": patches(0.02, 0.04), "one_minus_ssim": patches(0.1, 0.1)}
+    scores = {"noisy_relmse": 0.2, "noisy_one_minus_ssim": 0.5}
+    assert selection_values("relmse", per_patch, scores).tolist() == [0.02, 0.04]
+    assert selection_values("relmse+ssim", per_patch, scores).tolist() == pytest.approx([0.15, 0.2])
+    # halving a patch's 1-SSIM counts as much as halving its relMSE when both are the same share of the input's
+    halved = {"relmse": patches(0.02, 0.04), "one_minus_ssim": patches(0.1, 0.05)}
+    assert selection_values("relmse+ssim", halved, scores)[1] < selection_values("relmse+ssim", per_patch, scores)[1]
+
+
+def test_a_run_selecting_by_relmse_and_ssim_ships_the_step_it_names(store, tmp_path):
+    settings = dataclasses.replace(SETTINGS, select_metric="relmse+ssim", ssim_weight=0.5, precision="float32")
+    run = train(store, tmp_path / "run", settings, TINY, progress=False)
+    logged = {}
+    with open(run.out_dir / "metrics.csv") as f:
+        for row in csv.DictReader(f):
+            logged[(row["tag"], int(row["step"]))] = float(row["value"])
+    for branch in ("diffuse", "specular"):
+        chosen = run.selected[branch]
+        assert set(chosen) == {"step", "val_relmse_ssim"}
+        # the mean over patches of (relMSE / input's mean + 1-SSIM / input's mean) / 2 is linear in the patches
+        val = {k: logged[(f"{branch}/val_{k}", chosen["step"])]
+               for k in ("relmse", "noisy_relmse", "one_minus_ssim", "noisy_one_minus_ssim")}
+        expected = (val["relmse"] / val["noisy_relmse"] + val["one_minus_ssim"] / val["noisy_one_minus_ssim"]) / 2
+        assert chosen["val_relmse_ssim"] == pytest.approx(expected, rel=1e-5)
+        assert {"l1", "ssim"} <= set(run.last_losses[branch])
+    assert load_weights(run.weights)["metadata"]["selected"] == run.selected

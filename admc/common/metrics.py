@@ -4,8 +4,8 @@ All metrics compare a result `x` with a reference `ref`, both (H, W, 3) linear H
 Non-finite values are replaced by 0 first (NONFINITE_RULE), so a denoiser that emits them is scored
 (badly) instead of crashing the evaluation or vanishing from it.
 
-The evaluation scores NumPy images; training's validation scores batches of tensors. `relmse_torch`
-and `psnr_torch` are the same definitions per sample of an (N, C, H, W) batch, side by side with the
+The evaluation scores NumPy images; training's validation scores batches of tensors. `relmse_torch`,
+`psnr_torch` and `one_minus_ssim_torch` are the same definitions per sample of an (N, C, H, W) batch, side by side with the
 NumPy ones so they cannot drift apart (tests/test_metrics.py compares them).
 """
 from __future__ import annotations
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy.ndimage import correlate1d
 from torch import Tensor
 
@@ -160,6 +161,32 @@ def psnr_torch(x: Tensor, ref: Tensor) -> Tensor:
     mse = ((to_ldr_torch(x) - to_ldr_torch(ref)) ** 2).flatten(1).mean(1)
     db = 10 * torch.log10(LDR_RANGE ** 2 / mse.clamp(min=1e-30))
     return torch.where(mse == 0, torch.full_like(db, PSNR_CAP_DB), db.clamp(max=PSNR_CAP_DB))
+
+
+def ssim_map_torch(a: Tensor, b: Tensor) -> Tensor:
+    """The SSIM map of `ssim` for (N, C, H, W) images of 8-bit values (any float, differentiable), inside
+    the window's radius strip: valid convolutions see no border, as `ssim` drops the strip. Both sides
+    need at least 11 pixels."""
+    taps = torch.from_numpy(_gaussian_taps(SSIM_RADIUS)).to(a.device, a.dtype)
+    channels = a.shape[1]
+    across = taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1)
+    down = taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1)
+
+    def blur(img: Tensor) -> Tensor:
+        return F.conv2d(F.conv2d(img, across, groups=channels), down, groups=channels)
+
+    mu_a, mu_b = blur(a), blur(b)
+    var_a = blur(a * a) - mu_a ** 2
+    var_b = blur(b * b) - mu_b ** 2
+    cov = blur(a * b) - mu_a * mu_b
+    c1, c2 = (SSIM_K1 * LDR_RANGE) ** 2, (SSIM_K2 * LDR_RANGE) ** 2
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+
+
+def one_minus_ssim_torch(x: Tensor, ref: Tensor) -> Tensor:
+    """one_minus_ssim of each sample of (N, C, H, W) linear images, at least 11x11."""
+    a, b = to_ldr_torch(x.double()), to_ldr_torch(ref.double())
+    return 1.0 - ssim_map_torch(a, b).mean(dim=(2, 3)).mean(1)
 
 
 @dataclass(frozen=True)
