@@ -4,7 +4,7 @@ and non-finite guards.
 
     .venv/bin/python benchmarks/bench_train.py [--device cpu|cuda] [--configs small paper small-unet]
         [--precisions float32 bfloat16] [--batch-size N] [--patch-size P] [--steps 5] [--warmup 2]
-        [--threads N] [--compile] [--l1-only]
+        [--threads N] [--compile] [--l1-only] [--ssim-weight W]
 
 small and paper are the [model]/[train] of configs/default.toml and configs/paper.toml, small-unet the
 small model on the multi-scale body (model.backbone = "unet"). Inputs are
@@ -14,7 +14,8 @@ steps each, the precisions take turns step by step, so a busy machine slows them
 medians over --steps, and the last line gives each precision's speed-up over the first. --compile
 wraps each generator in torch.compile (the critic's double backward for the penalty cannot be
 compiled) and prints the first step, which pays the compilation. --l1-only times the step without a
-critic (train.adversarial = false), the way the shipped weights' last runs trained. Timings are
+critic (train.adversarial = false), the way the shipped weights' last runs trained; --ssim-weight adds the
+SSIM term of the loss (train.ssim_weight). Timings are
 synchronised on CUDA.
 """
 from __future__ import annotations
@@ -60,7 +61,8 @@ CONFIGS = {"small": small_settings, "paper": paper_settings, "small-unet": small
 def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
     model, train = CONFIGS[name]()
     train = replace(train, batch_size=args.batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
-                    critic_steps_per_g=1, head_tail_start_step=0, adversarial=not args.l1_only)
+                    critic_steps_per_g=1, head_tail_start_step=0, adversarial=not args.l1_only,
+                    ssim_weight=args.ssim_weight)
     batch = make_batch(train.batch_size, args.patch_size)
     trainers = {}
     for precision in args.precisions:
@@ -85,7 +87,7 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
         for precision, trainer in trainers.items():
             times[precision].append(timed_step(trainer, batch, device))
     medians = {p: statistics.median(t) for p, t in times.items()}
-    step = "G, L1 only" if args.l1_only else "G + critic + GP"
+    step = ("G, L1 only" if args.l1_only else "G + critic + GP") + (" + SSIM" if args.ssim_weight else "")
     for precision, seconds in medians.items():
         print(f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
               f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
@@ -107,6 +109,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0 = torch default)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the generators")
     parser.add_argument("--l1-only", action="store_true", help="no critic: train.adversarial = false")
+    parser.add_argument("--ssim-weight", type=float, default=0.0, help="train.ssim_weight (the SSIM loss term)")
     args = parser.parse_args()
     if args.warmup < 1:
         parser.error("--warmup must be >= 1")
