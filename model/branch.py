@@ -19,7 +19,6 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
-from admc.common.layout import ALBEDO
 from admc.stores.checkpoints import load_network
 
 from .critic import Critic
@@ -29,7 +28,7 @@ from .generator import build_generator
 from .losses import critic_loss, generator_loss
 from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .settings import ModelSettings, TrainSettings
-from .transforms import EPS
+from .validation import linear_scale
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
@@ -104,10 +103,6 @@ class BranchTrainer:
         opt.step()
         return True, parts
 
-    def _linear_scale(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """What turns expm1 of this branch's values into linear radiance: albedo + eps for diffuse."""
-        return batch["features"][:, ALBEDO] + EPS if self.branch == "diffuse" else None
-
     def _generator_update(self, step: int, batch: dict[str, Tensor], adversarial: bool
                           ) -> tuple[bool, dict[str, Tensor]]:
         for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
@@ -117,7 +112,8 @@ class BranchTrainer:
             fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
             critic_fake = self.critic(fake) if adversarial else None
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
-                                         adversarial, s.l1_floor, s.ssim_weight, self._linear_scale(batch))
+                                         adversarial, s.l1_floor, s.ssim_weight,
+                                         linear_scale(batch["features"], self.branch) if s.ssim_weight else None)
         parts["generator_loss"] = loss.detach()
         if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts

@@ -17,10 +17,15 @@ from .generator import Generator
 from .transforms import EPS
 
 
+def linear_scale(features: Tensor, branch: str) -> Tensor | None:
+    """What multiplies expm1 of a branch's values to give linear radiance: albedo + eps for diffuse, else None."""
+    return features[:, ALBEDO] + EPS if branch == "diffuse" else None
+
+
 def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
     """Inverse of the store's transforms: expm1(d) * (albedo + eps) for diffuse, expm1(s) for specular."""
-    x = torch.expm1(x.double())
-    return x * (features[:, ALBEDO].double() + EPS) if branch == "diffuse" else x
+    x, scale = torch.expm1(x.double()), linear_scale(features.double(), branch)
+    return x if scale is None else x * scale
 
 
 @torch.no_grad()
