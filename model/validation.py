@@ -1,8 +1,8 @@
 """Validation of one branch on fixed val patches: PSNR, relMSE and 1-SSIM in linear radiance.
 
 The metrics are the evaluation's own (admc.common.metrics, their torch twins): relMSE on linear
-HDR values, PSNR and 1-SSIM on the 8-bit tone-mapped images. Both are computed per patch and averaged, for the
-denoised output and, as the baseline, the noisy input.
+HDR values, PSNR and 1-SSIM on the 8-bit tone-mapped images. Each is computed per patch and averaged,
+for the denoised output and, as the baseline, the noisy input.
 """
 from __future__ import annotations
 
@@ -47,7 +47,6 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     features = val["features"]
     ref = to_linear(val["reference"], features, branch)
     out = to_linear(torch.cat(outputs), features, branch)
-    noisy = to_linear(val["noisy"], features, branch)
     per_patch = {"relmse": relmse_torch(out, ref), "one_minus_ssim": one_minus_ssim_torch(out, ref)}
     scores = {"psnr": float(psnr_torch(out, ref).mean()), **{k: float(v.mean()) for k, v in per_patch.items()}}
     for name in ("noisy", "base"):  # what the generator starts from: the run must beat it
