@@ -23,11 +23,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}
+LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}  # train.select_metric -> its name in notes
+SELECT_METRICS = tuple(LABELS)
 
 
 def selection_values(metric: str, per_patch: dict[str, Tensor], scores: dict[str, float]) -> Tensor:
-    """The per-patch values that rank validated steps under `metric` (settings.SELECT_METRICS)."""
+    """The per-patch values that rank validated steps under `metric` (one of SELECT_METRICS)."""
     if metric == "relmse":
         return per_patch["relmse"]
     shares = [per_patch[k] / max(scores[f"noisy_{k}"], 1e-12) for k in ("relmse", "one_minus_ssim")]

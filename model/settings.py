@@ -13,10 +13,10 @@ from admc.common.layout import BASES, BRANCHES
 
 from .critic import NORMS, CriticConfig
 from .generator import BACKBONES, MODES, MODULATED_MODES, GeneratorConfig
+from .selection import SELECT_METRICS
 
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
-SELECT_METRICS = ("relmse", "relmse+ssim")  # selection.selection_values
 STAGES = ("pretrain", "finetune")
 
 

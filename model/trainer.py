@@ -37,7 +37,7 @@ from .resume import (check_resumable, load_init, rng_state, say_precision_change
                      set_rng_state)
 from .settings import STAGES, ModelSettings, TrainSettings
 from .transforms import transform_spec
-from .validation import validate
+from .validation import baseline_scores, validate
 
 CHECKPOINT_NAME = "checkpoint.pt"
 WEIGHTS_NAME = "weights-fp16.pt"
@@ -116,6 +116,7 @@ class _Run:
     skipped: list[str] = field(default_factory=list)
     best: BestNetworks = field(init=False)
     validation: dict[str, dict[str, float]] = field(default_factory=dict)
+    baselines: dict[str, dict[str, float]] = field(default_factory=dict)  # branch -> the val scores of its input
     last_losses: dict[str, dict[str, float]] = field(default_factory=dict)
     transform: dict | None = None
     patch_size: int = 0
@@ -230,8 +231,10 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     """Validate every branch, log it and offer its networks to the selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
-        run.validation[b], per_patch = validate(trainer.generator, rows, b, run.settings.batch_size, run.device,
-                                                trainer.dtype)
+        scores, per_patch = validate(trainer.generator, rows, b, run.settings.batch_size, run.device, trainer.dtype)
+        if b not in run.baselines:
+            run.baselines[b] = baseline_scores(rows, b)
+        run.validation[b] = {**scores, **run.baselines[b]}
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
         values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
         run.last_selection[b] = float(values.mean())

@@ -2,7 +2,8 @@
 
 The metrics are the evaluation's own (admc.common.metrics, their torch twins): relMSE on linear
 HDR values, PSNR and 1-SSIM on the 8-bit tone-mapped images. Each is computed per patch and averaged,
-for the denoised output and, as the baseline, the noisy input.
+for the denoised output at every validation and, once per run, for its baseline: the noisy input (and OIDN's
+output, for a refiner).
 """
 from __future__ import annotations
 
@@ -31,9 +32,9 @@ def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
              device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[dict[str, float], dict[str, Tensor]]:
-    """({"psnr", "relmse", "one_minus_ssim", the same of "noisy_" and [of "base_"]} averaged over the val
-    patches (base: OIDN's output, for a refiner), the output's {"relmse", "one_minus_ssim"} per patch), the generator
-    run in `dtype` as in training (and as the denoiser runs it on the same machine)."""
+    """({"psnr", "relmse", "one_minus_ssim"} of the generator's output averaged over the val patches, the
+    same {"relmse", "one_minus_ssim"} per patch), the generator run in `dtype` as in training (and as the
+    denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
     outputs = []
@@ -44,15 +45,22 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
         with autocast_for(device, dtype):
             outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
-    features = val["features"]
-    ref = to_linear(val["reference"], features, branch)
-    out = to_linear(torch.cat(outputs), features, branch)
+    ref = to_linear(val["reference"], val["features"], branch)
+    out = to_linear(torch.cat(outputs), val["features"], branch)
     per_patch = {"relmse": relmse_torch(out, ref), "one_minus_ssim": one_minus_ssim_torch(out, ref)}
     scores = {"psnr": float(psnr_torch(out, ref).mean()), **{k: float(v.mean()) for k, v in per_patch.items()}}
-    for name in ("noisy", "base"):  # what the generator starts from: the run must beat it
+    return scores, per_patch
+
+
+def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
+    """The same averages for what the generator starts from, which a run must beat: "noisy_psnr",
+    "noisy_relmse", ... and, for a refiner, "base_*" of OIDN's output. Fixed for a run: computed once."""
+    ref = to_linear(val["reference"], val["features"], branch)
+    scores = {}
+    for name in ("noisy", "base"):
         if name in val:
-            start = to_linear(val[name], features, branch)
+            start = to_linear(val[name], val["features"], branch)
             scores.update({f"{name}_psnr": float(psnr_torch(start, ref).mean()),
                            f"{name}_relmse": float(relmse_torch(start, ref).mean()),
                            f"{name}_one_minus_ssim": float(one_minus_ssim_torch(start, ref).mean())})
-    return scores, per_patch
+    return scores

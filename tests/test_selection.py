@@ -13,11 +13,14 @@ from torch import nn
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store
+from admc.model.data import load_rows
+from admc.model.generator import build_generator
 from admc.model.selection import BestNetworks, improvement_z, selection_values
+from admc.model.validation import baseline_scores, validate
 from admc.model.settings import ModelSettings, TrainSettings
 from admc.model.trainer import train
 from admc.stores.checkpoints import load_checkpoint, load_weights
-from admc.stores.patches import list_scenes
+from admc.stores.patches import PatchReader, list_scenes
 
 TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4, input_skip=True)
 SETTINGS = TrainSettings(steps=6, batch_size=2, l1_warmup_steps=6, critic_only_steps=0, lr_g_diffuse=1e-4,
@@ -162,3 +165,20 @@ def test_a_run_selecting_by_relmse_and_ssim_ships_the_step_it_names(store, tmp_p
         assert chosen["val_relmse_ssim"] == pytest.approx(expected, rel=1e-5)
         assert {"l1", "ssim"} <= set(run.last_losses[branch])
     assert load_weights(run.weights)["metadata"]["selected"] == run.selected
+
+
+@pytest.mark.parametrize("branch", ["diffuse", "specular"])
+def test_the_baseline_is_the_input_scored_as_an_output_would_be(store, branch):
+    # baseline_scores runs once per run; it must score exactly what validate would give a network that
+    # returns its input: a skip generator whose correction is zero
+    rows = load_rows(PatchReader(store, "val", branch=branch), 8)
+    generator = build_generator(TINY.generator_config())
+    with torch.no_grad():
+        for p in generator.tail[-2].parameters():
+            p.zero_()
+    scores, per_patch = validate(generator, rows, branch, 4, torch.device("cpu"))
+    baseline = baseline_scores(rows, branch)
+    assert set(baseline) == {"noisy_psnr", "noisy_relmse", "noisy_one_minus_ssim"}
+    for key in ("psnr", "relmse", "one_minus_ssim"):
+        assert scores[key] == pytest.approx(baseline[f"noisy_{key}"], rel=1e-9)
+    assert per_patch["relmse"].shape == (len(rows["noisy"]),)
