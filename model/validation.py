@@ -46,21 +46,19 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
             outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
     ref = to_linear(val["reference"], val["features"], branch)
-    out = to_linear(torch.cat(outputs), val["features"], branch)
-    per_patch = {"relmse": relmse_torch(out, ref), "one_minus_ssim": one_minus_ssim_torch(out, ref)}
-    scores = {"psnr": float(psnr_torch(out, ref).mean()), **{k: float(v.mean()) for k, v in per_patch.items()}}
-    return scores, per_patch
+    per_patch = _per_patch(to_linear(torch.cat(outputs), val["features"], branch), ref)
+    return {k: float(v.mean()) for k, v in per_patch.items()}, {k: per_patch[k] for k in ("relmse", "one_minus_ssim")}
 
 
 def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
     """The same averages for what the generator starts from, which a run must beat: "noisy_psnr",
     "noisy_relmse", ... and, for a refiner, "base_*" of OIDN's output. Fixed for a run: computed once."""
     ref = to_linear(val["reference"], val["features"], branch)
-    scores = {}
-    for name in ("noisy", "base"):
-        if name in val:
-            start = to_linear(val[name], val["features"], branch)
-            scores.update({f"{name}_psnr": float(psnr_torch(start, ref).mean()),
-                           f"{name}_relmse": float(relmse_torch(start, ref).mean()),
-                           f"{name}_one_minus_ssim": float(one_minus_ssim_torch(start, ref).mean())})
-    return scores
+    return {f"{name}_{k}": float(v.mean())
+            for name in ("noisy", "base") if name in val
+            for k, v in _per_patch(to_linear(val[name], val["features"], branch), ref).items()}
+
+
+def _per_patch(x: Tensor, ref: Tensor) -> dict[str, Tensor]:
+    """Each patch's {"psnr", "relmse", "one_minus_ssim"} of linear `x` against `ref`."""
+    return {"psnr": psnr_torch(x, ref), "relmse": relmse_torch(x, ref), "one_minus_ssim": one_minus_ssim_torch(x, ref)}
