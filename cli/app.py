@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from admc.common.layout import ENSEMBLES
 from admc.errors import AdmcError
 from admc.pipeline import config as config_mod
 
@@ -200,6 +201,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
             tile: Annotated[int, typer.Option(min=1, help="Tile size in pixels (bounds memory; results are the "
                                                           "same).")] = 512,
+            ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
+                                                       "of the input: less error, that many times the time.")] = 1,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.train_stage import load_model
@@ -208,6 +211,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 
     if output is not None and len(inputs) > 1:
         raise typer.BadParameter("--output names one file; give one input, or leave it out")
+    if ensemble not in ENSEMBLES:
+        raise typer.BadParameter(f"--ensemble must be one of {', '.join(map(str, ENSEMBLES))}, got {ensemble}")
     cfg, model, written, failed = _load(config, set_), None, [], []
     for path in inputs:
         try:
@@ -215,7 +220,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
             check_output_path(target, source)
             if model is None:  # after the first input checks out
-                model = load_model(cfg, weights, device, tile)
+                model = load_model(cfg, weights, device, tile, ensemble=ensemble)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised

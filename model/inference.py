@@ -25,6 +25,7 @@ from .exposure import exposure_gain
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
 from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
+from .symmetry import ENSEMBLE_CODES, apply, undo
 from .tiling import receptive_radius, run_tiled
 from .transforms import (
     EPS,
@@ -103,15 +104,19 @@ class FullImageDenoiser:
     weights file it came from (reported next to the tables). `base` is what the generators correct:
     "noisy", or "oidn" for refiners (then OIDN runs first, inside the call). `normalize_exposure`
     scales dim images up for the networks (exposure.py); False is the measurement without it.
+    `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
+    (symmetry.py), at that many times the network time.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
                  tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
-                 normalize_exposure: bool = True) -> None:
+                 normalize_exposure: bool = True, ensemble: int = 1) -> None:
         if tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
+        if ensemble not in ENSEMBLE_CODES:
+            raise ValueError(f"FullImageDenoiser: ensemble must be one of {tuple(ENSEMBLE_CODES)}, got {ensemble!r}")
         self.torch_device = torch.device(device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
@@ -136,6 +141,7 @@ class FullImageDenoiser:
         self.device = _device_description(self.torch_device)
         self.name, self.source = name, source
         self.normalize_exposure = normalize_exposure
+        self.ensemble = ensemble
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         return generator.to(self.torch_device, memory_format=MEMORY_FORMAT).eval()
@@ -201,8 +207,11 @@ class FullImageDenoiser:
         return {branch: self._tensor(forward[branch](linear[branch])) for branch in branches}
 
     def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
+        codes = ENSEMBLE_CODES[self.ensemble]
         with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):
-            out = run_tiled(generator, noisy, feats, self.tile, self.overlap, self.alignment, base)
+            out = sum(undo(run_tiled(generator, apply(noisy, code), apply(feats, code, normals=True), self.tile,
+                                     self.overlap, self.alignment, None if base is None else apply(base, code)),
+                           code).float() for code in codes) / len(codes)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
 
@@ -256,8 +265,8 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 
 
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
-                  compile: bool = False, name: str | None = None, normalize_exposure: bool = True
-                  ) -> FullImageDenoiser:
+                  compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
+                  ensemble: int = 1) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
@@ -288,4 +297,4 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
-                             normalize_exposure=normalize_exposure)
+                             normalize_exposure=normalize_exposure, ensemble=ensemble)

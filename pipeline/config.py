@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from admc.common.layout import ENSEMBLES
 from admc.errors import AdmcError
 from admc.model.critic import DOWNSAMPLING
 from admc.model.settings import ModelSettings, TrainSettings
@@ -98,6 +99,7 @@ class EvalConfig:
     test_families: tuple[str, ...]
     test_scenes_per_family: int
     test_seed: int
+    ensemble: int
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",
@@ -110,6 +112,7 @@ class EvalConfig:
         _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")
         _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
         _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
+        _require(self.ensemble in ENSEMBLES, "eval.ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
 
 
 @dataclass(frozen=True)

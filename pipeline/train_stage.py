@@ -144,6 +144,8 @@ def default_weights(cfg: Config) -> Path:
 
 
 def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int = 512,
-               name: str | None = None) -> FullImageDenoiser:
-    """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda)."""
-    return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name)
+               name: str | None = None, ensemble: int = 1) -> FullImageDenoiser:
+    """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
+    averaging `ensemble` symmetries of each input (model/symmetry.py)."""
+    return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
+                         ensemble=ensemble)

@@ -9,7 +9,9 @@ log1p domain (diffuse / (albedo + eps), at the exposure the denoiser chose). Per
 correction (output - input), the output's and the input's mean signed and absolute error against the
 reference, and the output's bias relative to the bin's mean. The networks predict an additive
 correction in that domain, so an error of the same absolute size at every level is a small fraction
-of a bright pixel and a large one of a deep shadow. Point it at scenes you do not test on.
+of a bright pixel and a large one of a deep shadow; and above log1p 3, where the training corpora have
+almost no pixels, the correction can exceed the input's own error (train.exposure_stops aims at that).
+Point it at scenes you do not test on.
 """
 import argparse
 from pathlib import Path
@@ -21,7 +23,7 @@ from admc.model.inference import load_denoiser
 from admc.model.transforms import EPS
 from admc.stores.exr import read_exr
 
-EDGES = (0.0, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 10.0)
+EDGES = (0.0, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 2.0, 3.0, 4.0, 10.0)
 
 
 def main() -> None:

@@ -74,6 +74,13 @@ def test_denoise_output_naming_a_directory(tmp_path):
     assert list(folder.iterdir()) == [] and not list(tmp_path.glob(".*tmp*"))
 
 
+def test_denoise_with_an_ensemble_size_not_offered(tmp_path):
+    frame = _oidn_style_input(tmp_path)
+    out = run("denoise", str(frame), "--ensemble", "3", "--weights", str(SHIPPED))
+    refused(out, "--ensemble must be one of 1, 2, 4, 8, got 3")
+    assert not (tmp_path / "frame.denoised.exr").exists()
+
+
 @pytest.mark.parametrize("device", ["foo", "cuda:99"])
 def test_denoise_on_an_unknown_device(tmp_path, device):
     frame = _oidn_style_input(tmp_path)

@@ -7,6 +7,8 @@ BASES = ("noisy", "oidn")
 """What a generator starts from and corrects: the noisy radiance (the paper's denoiser) or Intel Open
 Image Denoise's output for the same branch (the admc+oidn refiner, which sees the noisy radiance
 through its EncoderNet)."""
+ENSEMBLES = (1, 2, 4, 8)
+"""How many symmetries of an input a denoiser may average its outputs over (model/symmetry.py)."""
 
 FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
 """The feature channels in the authors' order: normal(3), depth(1), albedo(3)."""

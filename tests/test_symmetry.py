@@ -1,0 +1,57 @@
+"""Test-time self-ensembling: the 8 symmetries on tensors agree with training's augmentation, and an
+8-way ensemble denoiser is equivariant to them, as a group average must be."""
+import numpy as np
+import pytest
+import torch
+
+from admc.common.layout import ENSEMBLES
+from admc.model.data import N_AUGMENTATIONS, augment
+from admc.model.inference import FullImageDenoiser
+from admc.model.symmetry import ENSEMBLE_CODES, apply, undo
+from test_inference import render_layers, strong_generator
+
+
+@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
+def test_tensor_symmetries_are_trainings_augmentation_and_undo_inverts_them(code):
+    rng = np.random.default_rng(code)
+    features = rng.random((2, 7, 5, 9), dtype=np.float32)
+    applied = apply(torch.from_numpy(features), code, normals=True)
+    for n in range(2):
+        np.testing.assert_array_equal(applied[n].numpy(), augment(features[n], code, normals=True))
+    image = torch.from_numpy(features[:, :3])
+    assert torch.equal(undo(apply(image, code), code), image)
+    assert torch.equal(torch.from_numpy(features), torch.from_numpy(features.copy()))  # the input is left alone
+
+
+def test_every_ensemble_size_uses_distinct_symmetries_starting_with_the_identity():
+    assert tuple(ENSEMBLE_CODES) == ENSEMBLES
+    for size, codes in ENSEMBLE_CODES.items():
+        assert len(set(codes)) == size and codes[0] == 0
+
+
+def _transposed(layers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The render of the transposed image: pixels (r, c) -> (c, r), view-space normal (x, y) -> (-y, -x)."""
+    out = {name: np.ascontiguousarray(array.transpose(1, 0, 2)) for name, array in layers.items()}
+    x, y = out["normal"][..., 0].copy(), out["normal"][..., 1].copy()
+    out["normal"][..., 0], out["normal"][..., 1] = -y, -x
+    return out
+
+
+def test_an_eight_way_ensemble_is_equivariant_and_one_way_is_the_plain_denoiser():
+    diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
+    layers = render_layers(24, 40)
+    plain = FullImageDenoiser(diffuse, specular)(layers)
+    assert np.array_equal(FullImageDenoiser(diffuse, specular, ensemble=1)(layers).image, plain.image)
+    ensemble = FullImageDenoiser(diffuse, specular, ensemble=8)
+    result = ensemble(layers)
+    moved = ensemble(_transposed(layers))
+    assert np.abs(plain.image - result.image).max() > 1e-3  # the ensemble is not the plain output
+    # Both runs average the same 8 network evaluations in another order; each evaluation sees its input
+    # in another memory layout (float32 convolutions summing in another order: ~1e-6 relative, see
+    # test_inference.LOG_TOLERANCE), and the linear outputs are O(10) at most here.
+    np.testing.assert_allclose(moved.image.transpose(1, 0, 2), result.image, rtol=1e-4, atol=1e-4)
+
+
+def test_an_ensemble_size_that_is_not_offered_is_refused():
+    with pytest.raises(ValueError, match=r"ensemble must be one of \(1, 2, 4, 8\), got 3"):
+        FullImageDenoiser(strong_generator(0), None, ensemble=3)
