@@ -138,7 +138,7 @@ class FullImageDenoiser:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
         self.tile = tile
         self.overlap = overlap
-        self.device = _device_description(self.torch_device)
+        self.device = _device_description(self.torch_device) + (f", ensemble of {ensemble}" if ensemble > 1 else "")
         self.name, self.source = name, source
         self.normalize_exposure = normalize_exposure
         self.ensemble = ensemble

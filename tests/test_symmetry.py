@@ -43,6 +43,7 @@ def test_an_eight_way_ensemble_is_equivariant_and_one_way_is_the_plain_denoiser(
     plain = FullImageDenoiser(diffuse, specular)(layers)
     assert np.array_equal(FullImageDenoiser(diffuse, specular, ensemble=1)(layers).image, plain.image)
     ensemble = FullImageDenoiser(diffuse, specular, ensemble=8)
+    assert ensemble.device.endswith(", ensemble of 8")  # said next to its timings in the tables
     result = ensemble(layers)
     moved = ensemble(_transposed(layers))
     assert np.abs(plain.image - result.image).max() > 1e-3  # the ensemble is not the plain output
