@@ -9,14 +9,13 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from admc.common.layout import ENSEMBLES
-
 from .data import FLIP_COLS, FLIP_ROWS, NORMAL_X, NORMAL_Y, TRANSPOSE
 
-ENSEMBLE_CODES = {1: (0,), 2: (0, TRANSPOSE), 4: (0, TRANSPOSE, FLIP_ROWS | FLIP_COLS, 7), 8: tuple(range(8))}
-"""Symmetries averaged for an ensemble of each size (layout.ENSEMBLES): 2 and 4 are the subsets that
-measured closest to 8."""
-assert tuple(ENSEMBLE_CODES) == ENSEMBLES
+HALF_TURN = FLIP_ROWS | FLIP_COLS
+ENSEMBLE_CODES = {1: (0,), 2: (0, TRANSPOSE), 4: (0, TRANSPOSE, HALF_TURN, HALF_TURN | TRANSPOSE),
+                  8: tuple(range(8))}
+"""Symmetries averaged for an ensemble of each size (the keys are layout.ENSEMBLES): the identity, then
+its transpose, then the half turn of both."""
 
 
 def apply(x: Tensor, code: int, normals: bool = False) -> Tensor:
