@@ -377,6 +377,17 @@ def test_time_denoiser_warms_up_then_times_repeats():
         time_denoiser(_Shifted(shape_error=True), layers, repeats=1, warmup=0)
 
 
+def test_evaluation_warms_each_denoiser_up_once_per_input_layout(renders, tmp_path):
+    """Warm-up runs are paid at the first image of each layout (layer names and sizes), not at every
+    image: every image still gets its `repeats` timed runs."""
+    images = find_test_images(renders)
+    layouts = {tuple(sorted((name, layer.shape) for name, layer in read_exr(t.noisy_path).items())) for t in images}
+    shifted = _Shifted()
+    evaluate(images, [shifted], tmp_path, progress=False, repeats=2, warmup=3)
+    assert len(images) == 4 and 1 <= len(layouts) <= 2
+    assert shifted.calls == 2 * len(images) + 3 * len(layouts)
+
+
 def test_denoiser_names_are_checked(renders, tmp_path):
     images = find_test_images(renders)[:1]
     with pytest.raises(EvalError, match="unique"):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,23 @@ def _write(path: Path, image: np.ndarray) -> Path:
     return path
 
 
+@dataclass
+class _Timing:
+    """Times every denoiser by `time_denoiser`, warming each up once per input layout (its layers' names
+    and sizes), not once per image. What a warm-up removes (JIT, oneDNN's primitives for a shape, the
+    allocator's growth, OptiX's per-size denoiser) is paid once per layout, and a warm-up run per image
+    would cost the evaluation a quarter of its denoising time at the default 3 timed runs."""
+    repeats: int
+    warmup: int
+    warmed: set[tuple] = field(default_factory=set)
+
+    def run(self, denoiser: Denoiser, layers: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
+        layout = (denoiser.name, tuple(sorted((name, np.shape(layer)) for name, layer in layers.items())))
+        warmup = 0 if layout in self.warmed else self.warmup
+        self.warmed.add(layout)
+        return time_denoiser(denoiser, layers, repeats=self.repeats, warmup=warmup)
+
+
 def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
              repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None,
              on_image: Callable[[ScoredImage], None] | None = None) -> EvalResult:
@@ -65,10 +83,11 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
     grouped = by_scene(images)
     out_dir = Path(out_dir)
     records, path_tracer, scenes = [], [], []
+    timing = _Timing(repeats, warmup)
     with _ProgressBar(sum(len(g) for g in grouped.values()) * len(denoisers), progress) as bar:
         for scene_id, group in grouped.items():
             scene = SceneImages(scene_id, out_dir / "images" / scene_id / "reference.exr")
-            for scored in _scene(group, scene, denoisers, bar, repeats, warmup):
+            for scored in _scene(group, scene, denoisers, bar, timing):
                 path_tracer.append(scored.records[PATH_TRACER])
                 records += [scored.records[d.name] for d in denoisers]
                 if on_image is not None:
@@ -85,20 +104,20 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
 
 
 def _scene(group: list[TestImage], scene: SceneImages, denoisers: list[Denoiser], bar: tuple[Progress, TaskID],
-           repeats: int, warmup: int) -> Iterator[ScoredImage]:
+           timing: _Timing) -> Iterator[ScoredImage]:
     """One scene's test images by spp, each scored and written; the scene's paths go into `scene`. A
     generator, so only this scene's images are alive, one test image (and the reference) at a time."""
     reference, floor = read_reference(group[0].reference_path)
     _write(scene.reference, reference)
     for test in sorted(group, key=lambda t: t.spp):
-        scored = _score(test, reference, floor, denoisers, scene.reference.parent, bar, repeats, warmup)
+        scored = _score(test, reference, floor, denoisers, scene.reference.parent, bar, timing)
         scene.inputs[test.spp] = scored.records[PATH_TRACER].image
         scene.outputs[test.spp] = {d.name: scored.records[d.name].image for d in denoisers}
         yield scored
 
 
 def _score(test: TestImage, reference: np.ndarray, floor: float, denoisers: list[Denoiser], folder: Path,
-           bar: tuple[Progress, TaskID], repeats: int, warmup: int) -> ScoredImage:
+           bar: tuple[Progress, TaskID], timing: _Timing) -> ScoredImage:
     """One test image: the noisy input and every denoiser's output, each written to `folder` and scored."""
     layers = read_exr(test.noisy_path)
     noisy = noisy_color(layers)
@@ -112,7 +131,7 @@ def _score(test: TestImage, reference: np.ndarray, floor: float, denoisers: list
     progress, task = bar
     for denoiser in denoisers:
         progress.update(task, description=f"{denoiser.name} on {test.scene_id} @ {test.spp} spp")
-        image, seconds = time_denoiser(denoiser, layers, repeats=repeats, warmup=warmup)
+        image, seconds = timing.run(denoiser, layers)
         outputs[denoiser.name] = image
         records[denoiser.name] = _record(test, denoiser.name, denoiser.device, image, reference, seconds,
                                          _write(folder / f"{stem}_{denoiser.name}.exr", image), floor)
