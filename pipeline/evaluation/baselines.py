@@ -229,7 +229,7 @@ def _gpu_name() -> str:
         return "GPU"
 
 
-def time_denoiser(denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 3,
+def time_denoiser(denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 1,
                   warmup: int = 1) -> tuple[np.ndarray, float]:
     """(image, seconds): `warmup` untimed runs, then the median of `repeats` synchronised runs.
 

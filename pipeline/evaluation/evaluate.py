@@ -58,8 +58,8 @@ def _write(path: Path, image: np.ndarray) -> Path:
 class _Timing:
     """Times every denoiser by `time_denoiser`, warming each up once per input layout (its layers' names
     and sizes), not once per image. What a warm-up removes (JIT, oneDNN's primitives for a shape, the
-    allocator's growth, OptiX's per-size denoiser) is paid once per layout, and a warm-up run per image
-    would cost the evaluation a quarter of its denoising time at the default 3 timed runs."""
+    allocator's growth, OptiX's per-size denoiser) is paid once per layout; a warm-up run per image
+    would double the evaluation's denoising time at the default single timed run."""
     repeats: int
     warmup: int
     warmed: set[tuple] = field(default_factory=set)
@@ -72,7 +72,7 @@ class _Timing:
 
 
 def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
-             repeats: int = 3, warmup: int = 1, not_run: dict[str, str] | None = None,
+             repeats: int = 1, warmup: int = 1, not_run: dict[str, str] | None = None,
              on_image: Callable[[ScoredImage], None] | None = None) -> EvalResult:
     """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and EXRs.
 

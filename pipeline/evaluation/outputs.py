@@ -16,7 +16,7 @@ from admc.pipeline.evaluation.records import (BEST_PERCENT_RULE, FLOOR_KEYS, FLO
 from admc.pipeline.evaluation.table1 import build_table1, table1_markdown
 from admc.stores.atomic import publishing, write_json
 
-TIMING_RULE = ("denoise seconds = median of {repeats} runs, each bracketed by the denoiser's synchronize(), "
+TIMING_RULE = ("denoise seconds = median of {repeats} timed run(s), each bracketed by the denoiser's synchronize(), "
                "after {warmup} warm-up run(s) of each denoiser per input layout (the first image with its layers' "
                "names and sizes); total seconds = the input's render time (from its sidecar) + denoise seconds; "
                "the path tracer's total is its render time alone.")
