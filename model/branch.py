@@ -6,13 +6,17 @@ head_tail_start_step on (two generator optimisers, as in their SFTGAN-based code
 each. An update whose loss or gradients are not finite is skipped (no optimiser or scheduler step),
 so a bad batch never reaches the weights; the step counts as bad. The networks run in
 train.precision (bf16 autocast or float32, channels_last either way: precision.py); the losses and the gradient
-penalty are float32 whatever it is (losses.py). Under data-parallel training (distributed.py) each
-rank steps on its shard of the batch: the gradients are averaged over the ranks before the finite check
-and the optimiser step, and the ranks agree on skipping a step, so they stay identical.
+penalty are float32 whatever it is (losses.py). With train.ema > 0 the branch also keeps an exponential
+moving average of the generator's weights, and that average is what validation scores and training
+ships: it smooths the step-to-step noise that small batches leave in the weights. Under data-parallel
+training (distributed.py) each rank steps on its shard of the batch: the gradients are averaged over the
+ranks before the finite check and the optimiser step, and the ranks agree on skipping a step, so they
+stay identical.
 """
 from __future__ import annotations
 
 import contextlib
+import copy
 import warnings
 from collections.abc import Iterator
 
@@ -74,9 +78,33 @@ class BranchTrainer:
         self.schedulers = {name: torch.optim.lr_scheduler.MultiStepLR(opt, list(settings.lr_milestones),
                                                                       settings.lr_gamma)
                            for name, opt in self.optimizers.items()}
+        self.average = self._copy_of_generator() if settings.ema else None
+        self.average_updates = 0
         self.batches = 0          # batches consumed from the data stream (its resume position)
         self.bad_total = 0
         self.bad_consecutive = 0
+
+    @property
+    def shipped_generator(self) -> nn.Module:
+        """The generator that validation scores and training ships: the moving average when train.ema > 0."""
+        return self.average if self.average is not None else self.generator
+
+    def _copy_of_generator(self) -> nn.Module:
+        average = copy.deepcopy(self.generator).eval()
+        for p in average.parameters():
+            p.requires_grad_(False)
+        return average
+
+    @torch.no_grad()
+    def _update_average(self) -> None:
+        """average += (1 - decay) (weights - average), the decay ramped as min(ema, (1 + n) / (10 + n)) over the
+        n updates so far, so a run from random weights does not carry them for thousands of steps."""
+        decay = min(self.settings.ema, (1 + self.average_updates) / (10 + self.average_updates))
+        self.average_updates += 1
+        for averaged, weights in zip(self.average.parameters(), self.generator.parameters()):
+            averaged.lerp_(weights, 1.0 - decay)
+        for averaged, weights in zip(self.average.buffers(), self.generator.buffers()):
+            averaged.copy_(weights)
 
     def batches_per_step(self, step: int) -> int:
         return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
@@ -124,6 +152,8 @@ class BranchTrainer:
         self.optimizers["g_body"].step()
         if step >= s.head_tail_start_step:
             self.optimizers["g_head_tail"].step()
+        if self.average is not None:
+            self._update_average()
         return True, parts
 
     def step(self, step: int, batches: list[dict[str, Tensor]]) -> tuple[bool, dict[str, float]]:
@@ -168,7 +198,9 @@ class BranchTrainer:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
 
     def state_dict(self) -> dict:
-        return {"generator": self.generator.state_dict(), "critic": self.critic.state_dict(),
+        average = {} if self.average is None else {"average": self.average.state_dict(),
+                                                   "average_updates": self.average_updates}
+        return {"generator": self.generator.state_dict(), "critic": self.critic.state_dict(), **average,
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
                 "batches": self.batches, "bad_total": self.bad_total, "bad_consecutive": self.bad_consecutive}
@@ -181,6 +213,10 @@ class BranchTrainer:
             scheduler.load_state_dict(state["schedulers"][k])
         self.batches, self.bad_total = state["batches"], state["bad_total"]
         self.bad_consecutive = state["bad_consecutive"]
+        if self.average is not None and "average" in state:
+            load_network(self.average, state["average"], f"{source}: {self.branch} moving average",
+                         "the configured architecture")
+            self.average_updates = state["average_updates"]
 
     def load_networks(self, generator: dict[str, Tensor], critic: dict[str, Tensor], source: str) -> None:
         """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs (the
@@ -189,3 +225,6 @@ class BranchTrainer:
         load_network(self.critic, critic, f"{source}: {self.branch} critic",
                      f"the configured architecture at tile.patch_size = {self.patch_size} (the critic's "
                      "classifier is sized for the patch it was trained on)")
+        if self.average is not None:  # the average starts from the loaded weights (a checkpoint's own follows)
+            self.average.load_state_dict(self.generator.state_dict())
+            self.average_updates = 0

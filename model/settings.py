@@ -106,6 +106,8 @@ class TrainSettings:
     l1_weight: float = 1.0
     l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
     ssim_weight: float = 0.0              # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
+    ema: float = 0.0                      # validate and ship an exponential moving average of the generator's
+                                          # weights with this decay per step (branch.py); 0 = the weights themselves
     adv_weight: float = 5e-3
     gp_weight: float = 10.0
     adversarial: bool = True
@@ -137,6 +139,8 @@ class TrainSettings:
         for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z"):
             value = getattr(self, name)
             _require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
+        _require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema",
+                 f"must be in [0, 1), got {self.ema!r}")
         _require(self.lr_gamma <= 1, "lr_gamma", f"must be in (0, 1], got {self.lr_gamma!r}")
         milestones = list(self.lr_milestones)
         _require(all(isinstance(m, int) and m >= 1 for m in milestones) and milestones == sorted(set(milestones)),

@@ -96,7 +96,7 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     run.precision = precision_name(next(iter(run.trainers.values())).dtype)
     start = _restore(run, checkpoint, init_nets)
     for trainer in run.trainers.values():
-        broadcast_modules(trainer.generator, trainer.critic)
+        broadcast_modules(trainer.generator, trainer.critic, *[m for m in [trainer.average] if m is not None])
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
 
@@ -231,7 +231,8 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     """Validate every branch, log it and offer its networks to the selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
-        scores, per_patch = validate(trainer.generator, rows, b, run.settings.batch_size, run.device, trainer.dtype)
+        scores, per_patch = validate(trainer.shipped_generator, rows, b, run.settings.batch_size, run.device,
+                                     trainer.dtype)
         if b not in run.baselines:
             run.baselines[b] = baseline_scores(rows, b)
         run.validation[b] = {**scores, **run.baselines[b]}
@@ -239,7 +240,7 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
         values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
         run.last_selection[b] = float(values.mean())
         guard = step == 0 and run.init_from is not None  # fine-tuning: ship nothing that is not proven better
-        run.best.offer(b, step, values, trainer.generator, trainer.critic, guard=guard)
+        run.best.offer(b, step, values, trainer.shipped_generator, trainer.critic, guard=guard)
 
 
 def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], start: int, resume: bool) -> None:
@@ -308,7 +309,8 @@ def _finish(run: _Run, start: int) -> TrainResult:
         log.info(note)
     trainers = run.trainers
     if run.ranks.lead:
-        export_weights(run.weights_path, {b: run.best.networks(b, t.generator, t.critic) for b, t in trainers.items()},
+        nets = {b: run.best.networks(b, t.shipped_generator, t.critic) for b, t in trainers.items()}
+        export_weights(run.weights_path, nets,
                        {"model": dataclasses.asdict(run.model), "transform": run.transform,
                         "patch_size": run.patch_size, "stage": run.stage, "step": last_step, "selected": selected,
                         "store_fingerprint": run.fingerprint, "precision": run.precision})

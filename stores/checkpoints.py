@@ -138,12 +138,14 @@ def load_weights(path: str | os.PathLike) -> dict[str, Any]:
 
 def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     """(branch -> {"generator", "critic"} state dicts, model settings, transform spec) from either a
-    training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at."""
+    training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at. A
+    checkpoint of a run with a moving average (train.ema) gives that average: what the run ships."""
     obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
     try:
         if obj["format"] == WEIGHTS_FORMAT:
             return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
-        nets = {b: {"generator": s["generator"], "critic": s["critic"]} for b, s in obj["branches"].items()}
+        nets = {b: {"generator": s.get("average", s["generator"]), "critic": s["critic"]}
+                for b, s in obj["branches"].items()}
         return nets, obj["model"], obj["transform"]
     except (KeyError, TypeError, AttributeError) as exc:
         raise CheckpointError(f"{path}: a malformed {obj['format']} file (no {exc} entry where expected)") from None

@@ -17,7 +17,7 @@ from admc.model.generator import MODES
 from admc.model.settings import ModelSettings, TrainSettings, paper_settings, small_settings
 from admc.model.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
-                                     save_checkpoint)
+                                     read_networks, save_checkpoint)
 from admc.stores.patches import PatchReader, PatchStoreError
 
 TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4)
@@ -161,6 +161,43 @@ def test_stop_and_resume_equals_one_uninterrupted_run(store, tmp_path, precision
     assert csv_text.count("\n6,diffuse/l1,") == 1  # resumed logs are not duplicated
     assert list((tmp_path / "whole" / "tensorboard").glob("events.out.tfevents.*"))
     assert a["precision"] == b["precision"] == precision
+
+
+def test_the_moving_average_follows_the_weights_with_a_ramped_decay(store):
+    torch.manual_seed(0)
+    settings = dataclasses.replace(SETTINGS, ema=0.5, l1_warmup_steps=10, head_tail_start_step=0)
+    trainer = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
+    source = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
+    trainer.load_networks(source.generator.state_dict(), source.critic.state_dict(), "source")
+    assert_states_equal(trainer.average.state_dict(), source.generator.state_dict())  # starts at loaded weights
+    expected = snapshot(trainer.generator)
+    for n in range(3):
+        assert trainer.step(n, [batch_of(store)])[0]
+        decay = min(0.5, (1 + n) / (10 + n))  # 0.1, 0.18, 0.25: below ema while the average is young
+        expected = {k: decay * expected[k] + (1 - decay) * v for k, v in trainer.generator.state_dict().items()}
+    # lerp and the explicit sum round differently: a few float32 ulps of weights below 1
+    for key, value in trainer.average.state_dict().items():
+        torch.testing.assert_close(value, expected[key], rtol=1e-5, atol=1e-6)
+    assert trainer.shipped_generator is trainer.average and trainer.average_updates == 3
+    assert not torch.equal(trainer.average.head.weight, trainer.generator.head.weight)
+
+
+def test_the_moving_average_is_checkpointed_resumed_and_shipped(store, tmp_path):
+    settings = dataclasses.replace(SETTINGS, ema=0.9, val_every=0)
+    whole = train(store, tmp_path / "whole", settings, TINY, progress=False)
+    train(store, tmp_path / "split", dataclasses.replace(settings, steps=4), TINY, progress=False)
+    second = train(store, tmp_path / "split", settings, TINY, resume=True, progress=False)
+    a, b = load_checkpoint(whole.checkpoint), load_checkpoint(second.checkpoint)
+    assert_states_equal(a["branches"], b["branches"])
+    shipped = load_weights(whole.weights)["branches"]
+    for branch in ("diffuse", "specular"):
+        state = a["branches"][branch]
+        assert state["average_updates"] == 2 + 4  # the L1 and adversarial steps' generator updates
+        for key, value in state["average"].items():
+            assert torch.equal(shipped[branch]["generator"][key], value.half()), key
+        assert not torch.equal(state["average"]["head.weight"], state["generator"]["head.weight"])
+    nets, _, _ = read_networks(whole.checkpoint)  # denoising or fine-tuning from the checkpoint takes the average
+    assert_states_equal(nets["specular"]["generator"], a["branches"]["specular"]["average"])
 
 
 def test_resume_in_another_precision_continues_and_says_so(store, tmp_path):
@@ -344,6 +381,8 @@ def test_settings_check_names_the_field():
         dataclasses.replace(SETTINGS, batch_size=0).check()
     with pytest.raises(ValueError, match="^precision: 'float16' is not one of"):
         dataclasses.replace(SETTINGS, precision="float16").check()
+    with pytest.raises(ValueError, match=r"^ema: must be in \[0, 1\), got 1"):
+        dataclasses.replace(SETTINGS, ema=1).check()
     phases = [SETTINGS.phase(s) for s in range(5)]
     assert phases == ["l1", "l1", "critic", "adversarial", "adversarial"]
 
