@@ -203,6 +203,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                           "same).")] = 512,
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
                                                        "of the input: less error, that many times the time.")] = 1,
+            dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
+                                                         "them from there (eval's default): up to twice the "
+                                                         "time.")] = False,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.train_stage import load_model
@@ -220,7 +223,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
             check_output_path(target, source)
             if model is None:  # after the first input checks out
-                model = load_model(cfg, weights, device, tile, ensemble=ensemble)
+                model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised

@@ -7,7 +7,8 @@ A refiner (generators with config.base = "oidn") first runs OIDN per branch on t
 (oidn_base.oidn_bases, as tiling did for its training rows), then corrects OIDN's output tile by tile:
 one call, and its time includes OIDN's.
 
-A dim image is scaled up for the networks and its output scaled back (exposure.py).
+A dim image is scaled up for the networks and its output scaled back, and the dark regions of any
+image are taken from a second pass at a higher exposure (exposure.py).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from torch import Tensor, nn
 
 from admc.common.diff import differing_keys
 
-from .exposure import exposure_gain
+from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
 from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
@@ -65,6 +66,7 @@ class DenoiseResult:
     network_seconds: float = 0.0         # generator time, synchronised (both branches)
     base_seconds: float = 0.0            # OIDN's time for a refiner's bases (0 for base "noisy")
     exposure_gain: float = 1.0           # the radiance went through the networks times this (exposure.py)
+    dark_share: float = 0.0              # mean share of the second pass at DARK_GAIN x that (0: it did not run)
     seconds: float = 0.0                 # whole call: sanitising, OIDN, transforms, networks, inverse
 
     @property
@@ -104,6 +106,8 @@ class FullImageDenoiser:
     weights file it came from (reported next to the tables). `base` is what the generators correct:
     "noisy", or "oidn" for refiners (then OIDN runs first, inside the call). `normalize_exposure`
     scales dim images up for the networks (exposure.py); False is the measurement without it.
+    `dark_pass` denoises the image a second time at DARK_GAIN times the exposure where it has dark
+    regions, and takes those from it (exposure.dark_weights): up to twice the network time.
     `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
     (symmetry.py), at that many times the network time.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
@@ -112,7 +116,7 @@ class FullImageDenoiser:
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
                  tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
-                 normalize_exposure: bool = True, ensemble: int = 1) -> None:
+                 normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1) -> None:
         if tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         if ensemble not in ENSEMBLE_CODES:
@@ -138,9 +142,11 @@ class FullImageDenoiser:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
         self.tile = tile
         self.overlap = overlap
-        self.device = _device_description(self.torch_device) + (f", ensemble of {ensemble}" if ensemble > 1 else "")
+        self.device = (_device_description(self.torch_device) + (f", ensemble of {ensemble}" if ensemble > 1 else "")
+                       + (", dark pass" if dark_pass else ""))
         self.name, self.source = name, source
         self.normalize_exposure = normalize_exposure
+        self.dark_pass = dark_pass
         self.ensemble = ensemble
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
@@ -157,20 +163,39 @@ class FullImageDenoiser:
         """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays."""
         start = time.perf_counter()
         clean, sanitized = sanitize_layers(layers)
-        albedo = clean["albedo"]
         run_specular = "specular" in clean and "specular" in self.generators
         radiance = clean["diffuse"] + clean["specular"] if "specular" in clean else clean["diffuse"]
         gain = exposure_gain(radiance) if self.normalize_exposure else 1.0
-        exposed = dict(clean)
-        for name in ("diffuse", "specular"):
-            if name in clean:
-                exposed[name] = clean[name] * np.float32(gain)
+        feats = self._tensor(features(clean["normal"], clean["depth"], clean["albedo"], clean["coverage"]))
+        passes = [self._pass(clean, feats, gain, run_specular)]
+        diffuse, specular = passes[0].diffuse, passes[0].specular
+        dark_share = 0.0
+        if self.dark_pass:
+            weights = dark_weights(diffuse + specular if specular is not None else diffuse, gain, clean["coverage"])
+            if weights.any():
+                passes.append(self._pass(clean, feats, gain * DARK_GAIN, run_specular))
+                diffuse = diffuse + weights * (passes[1].diffuse - diffuse)
+                if run_specular:
+                    specular = specular + weights * (passes[1].specular - specular)
+                dark_share = float(weights.mean())
+        image = diffuse + specular if specular is not None else diffuse.copy()
+        return DenoiseResult(
+            image=image, diffuse=diffuse, specular=specular, branches=("diffuse", "specular")[:1 + run_specular],
+            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
+            nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
+            network_seconds=sum(p.network_seconds for p in passes), base_seconds=sum(p.base_seconds for p in passes),
+            exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
+        )
+
+    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool) -> "_Pass":
+        """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units."""
+        albedo = clean["albedo"]
+        exposed = {name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}
         inputs = {"diffuse": diffuse_forward(exposed["diffuse"], albedo)}
         if run_specular:
             inputs["specular"] = specular_forward(exposed["specular"])
-        feats = self._tensor(features(clean["normal"], clean["depth"], albedo, clean["coverage"]))
         base_start = time.perf_counter()
-        bases = self._bases(exposed, albedo, tuple(inputs))
+        bases = self._bases({**clean, **exposed}, albedo, tuple(inputs))
         base_seconds = time.perf_counter() - base_start
 
         self.synchronize()
@@ -186,13 +211,7 @@ class FullImageDenoiser:
 
         diffuse = diffuse_inverse(outputs["diffuse"], albedo) / np.float32(gain)
         specular = specular_inverse(outputs["specular"]) / np.float32(gain) if run_specular else clean.get("specular")
-        image = diffuse + specular if specular is not None else diffuse.copy()
-        return DenoiseResult(
-            image=image, diffuse=diffuse, specular=specular, branches=tuple(inputs),
-            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
-            nonfinite_outputs=nonfinite, tiles=tiles, network_seconds=network_seconds, base_seconds=base_seconds,
-            exposure_gain=gain, seconds=time.perf_counter() - start,
-        )
+        return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
@@ -214,6 +233,18 @@ class FullImageDenoiser:
                            code).float() for code in codes) / len(codes)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+
+
+@dataclass
+class _Pass:
+    """One run of the networks at one exposure: linear outputs in the input's units, and its costs."""
+
+    diffuse: np.ndarray
+    specular: np.ndarray | None
+    nonfinite: int
+    tiles: int
+    network_seconds: float
+    base_seconds: float
 
 
 def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray],
@@ -266,7 +297,7 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
                   compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
-                  ensemble: int = 1) -> FullImageDenoiser:
+                  dark_pass: bool = False, ensemble: int = 1) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
@@ -297,4 +328,4 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
-                             normalize_exposure=normalize_exposure, ensemble=ensemble)
+                             normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble)

@@ -100,6 +100,7 @@ class EvalConfig:
     test_scenes_per_family: int
     test_seed: int
     ensemble: int
+    dark_pass: bool
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",

@@ -144,8 +144,9 @@ def default_weights(cfg: Config) -> Path:
 
 
 def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int = 512,
-               name: str | None = None, ensemble: int = 1) -> FullImageDenoiser:
+               name: str | None = None, ensemble: int = 1, dark_pass: bool = False) -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
-    averaging `ensemble` symmetries of each input (model/symmetry.py)."""
+    averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
+    second, brighter pass if `dark_pass` (model/exposure.py)."""
     return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
-                         ensemble=ensemble)
+                         ensemble=ensemble, dark_pass=dark_pass)

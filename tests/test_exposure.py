@@ -1,16 +1,18 @@
-"""Exposure normalisation: dim images are denoised at the trained brightness and scaled back (CPU)."""
+"""Exposure normalisation: dim images are denoised at the trained brightness and scaled back, dark regions
+again at a higher exposure (CPU)."""
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from test_inference import render_layers, strong_generator
-from admc.model.exposure import TRAINED_BRIGHTNESS, brightness, exposure_gain
+from admc.model.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
 from admc.model.inference import FullImageDenoiser
 from admc.model.transforms import RADIANCE_MAX
 
-def denoiser(normalize: bool) -> FullImageDenoiser:
+def denoiser(normalize: bool, dark_pass: bool = True) -> FullImageDenoiser:
     return FullImageDenoiser(strong_generator(1), strong_generator(2), dtype=torch.float32,
-                             normalize_exposure=normalize)
+                             normalize_exposure=normalize, dark_pass=dark_pass)
 
 
 def scaled(layers: dict, factor: float) -> dict:
@@ -57,3 +59,50 @@ def test_bright_images_and_environment_pixels_are_untouched():
     result = denoiser(True)(dim)
     assert result.exposure_gain > 1
     np.testing.assert_allclose(result.image[:, :5], (dim["diffuse"] + dim["specular"])[:, :5], rtol=1e-5)
+
+
+def test_dark_weights_follow_log_luminance_and_skip_the_environment():
+    levels = np.array([1.0, DARK_LEVEL, DARK_LEVEL / 8, DARK_LEVEL / DARK_GAIN, 1e-6, 0.0], np.float32)
+    image = np.repeat(np.repeat(levels[:, None, None], 40, 1), 3, 2)  # flat rows, far apart for the blur
+    image = np.repeat(image, 40, 0)
+    coverage = np.ones((*image.shape[:2], 1), np.float32)
+    coverage[-40:] = 0.0  # the black row is environment
+    weights = dark_weights(image, 1.0, coverage)[20::40, 20, 0]  # each row's centre
+    np.testing.assert_allclose(weights, [0.0, 0.0, 0.5, 1.0, 1.0, 0.0], atol=1e-6)  # 3 of 6 stops: half
+    np.testing.assert_array_equal(dark_weights(image / 8, 8.0, coverage), dark_weights(image, 1.0, coverage))
+
+
+class LogOffset(nn.Module):
+    """A real module with a fixed log-domain error: +0.001 on every output, at any exposure."""
+
+    def forward(self, noisy, features):
+        return noisy + 0.001
+
+
+def offset_denoiser(dark_pass: bool) -> FullImageDenoiser:
+    return FullImageDenoiser(LogOffset(), LogOffset(), overlap=0, dtype=torch.float32, normalize_exposure=False,
+                             dark_pass=dark_pass)
+
+
+def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
+    layers = render_layers(24, 24, seed=5)
+    for name in ("diffuse", "specular"):
+        layers[name][:, :12] *= np.float32(1e-4)  # a dark left half
+        layers[name][:, 12:] += np.float32(1.0)  # a bright right half
+    twice, once = offset_denoiser(True)(layers), offset_denoiser(False)(layers)
+    brighter = offset_denoiser(False)(scaled(layers, DARK_GAIN))
+    weights = dark_weights(once.image, 1.0, layers["coverage"])
+    assert (weights[:, :6] == 1).all() and (weights[:, -6:] == 0).all()
+    assert twice.dark_share == pytest.approx(float(weights.mean()))
+    for branch in ("diffuse", "specular"):  # each branch blended with the same weights
+        first, second = getattr(once, branch), getattr(brighter, branch) / DARK_GAIN
+        np.testing.assert_array_equal(getattr(twice, branch), first + weights * (second - first))
+    np.testing.assert_array_equal(twice.image[:, -6:], once.image[:, -6:])
+    noisy = layers["diffuse"] + layers["specular"]
+    dark_error, plain_error = np.abs(twice.image - noisy)[:, :6], np.abs(once.image - noisy)[:, :6]
+    assert dark_error.max() < plain_error.min() / 32  # the same log-domain error, 64x less radiance
+    bright = render_layers(16, 16, seed=6)
+    bright["diffuse"] += np.float32(1.0)  # nothing dark: one pass, the same image
+    result = offset_denoiser(True)(bright)
+    assert result.dark_share == 0.0
+    np.testing.assert_array_equal(result.image, offset_denoiser(False)(bright).image)

@@ -113,6 +113,8 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
     out = denoiser(layers)
     assert out.image.shape == layers["diffuse"].shape and np.isfinite(out.image).all()
     assert out.base_seconds > 0
+    dark = load_denoiser(result.weights, dark_pass=True)(layers)  # OIDN runs again at the second exposure
+    assert np.isfinite(dark.image).all() and (dark.dark_share == 0) == np.array_equal(dark.image, out.image)
 
 
 def store_scene(store):

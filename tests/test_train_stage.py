@@ -110,6 +110,8 @@ def test_eval_includes_the_trained_model(pretrained):
     table = (workdir / "eval" / "table1.csv").read_text()
     assert {"noisy", "oidn", "admc"} <= {line.split(",")[1] for line in table.splitlines()[1:]}
     assert f"**Weights:** admc: {weights}" in (workdir / "eval" / "table1.md").read_text()
+    devices = json.loads((workdir / "eval" / "results.json").read_text())["devices"]
+    assert devices["admc"].endswith(", dark pass")  # eval.dark_pass is on by default, and the tables say so
 
 
 def test_eval_compares_several_checkpoints_in_one_table(pretrained):
@@ -144,6 +146,10 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
     assert out.returncode == 0, out.stderr
     layers = read_exr(tmp_path / "a.exr")
     assert layers[BEAUTY].shape == (64, 64, 3) and np.isfinite(layers[BEAUTY]).all()
+    assert "dark pass" not in out.stdout  # off unless asked for
+    out = cli("denoise", str(render), "-o", str(tmp_path / "b.exr"), "--weights", str(weights), "--dark-pass")
+    assert out.returncode == 0 and ", dark pass)" in out.stdout, out.stderr
+    assert np.isfinite(read_exr(tmp_path / "b.exr")[BEAUTY]).all()
 
     src = read_exr(render)
     colour = src["diffuse"] + src.get("specular", 0)
