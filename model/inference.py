@@ -187,7 +187,7 @@ class FullImageDenoiser:
             exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
         )
 
-    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool) -> "_Pass":
+    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool) -> _Pass:
         """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units."""
         albedo = clean["albedo"]
         exposed = {name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}
