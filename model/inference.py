@@ -164,24 +164,22 @@ class FullImageDenoiser:
         start = time.perf_counter()
         clean, sanitized = sanitize_layers(layers)
         run_specular = "specular" in clean and "specular" in self.generators
-        radiance = clean["diffuse"] + clean["specular"] if "specular" in clean else clean["diffuse"]
-        gain = exposure_gain(radiance) if self.normalize_exposure else 1.0
+        gain = exposure_gain(_beauty(clean["diffuse"], clean.get("specular"))) if self.normalize_exposure else 1.0
         feats = self._tensor(features(clean["normal"], clean["depth"], clean["albedo"], clean["coverage"]))
         passes = [self._pass(clean, feats, gain, run_specular)]
         diffuse, specular = passes[0].diffuse, passes[0].specular
         dark_share = 0.0
         if self.dark_pass:
-            weights = dark_weights(diffuse + specular if specular is not None else diffuse, gain, clean["coverage"])
+            weights = dark_weights(_beauty(diffuse, specular), gain, clean["coverage"])
             if weights.any():
                 passes.append(self._pass(clean, feats, gain * DARK_GAIN, run_specular))
                 diffuse = diffuse + weights * (passes[1].diffuse - diffuse)
                 if run_specular:
                     specular = specular + weights * (passes[1].specular - specular)
                 dark_share = float(weights.mean())
-        image = diffuse + specular if specular is not None else diffuse.copy()
         return DenoiseResult(
-            image=image, diffuse=diffuse, specular=specular, branches=("diffuse", "specular")[:1 + run_specular],
-            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
+            image=_beauty(diffuse, specular), diffuse=diffuse, specular=specular,
+            branches=("diffuse", "specular")[:1 + run_specular], specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
             nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
             network_seconds=sum(p.network_seconds for p in passes), base_seconds=sum(p.base_seconds for p in passes),
             exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
@@ -233,6 +231,11 @@ class FullImageDenoiser:
                            code).float() for code in codes) / len(codes)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+
+
+def _beauty(diffuse: np.ndarray, specular: np.ndarray | None) -> np.ndarray:
+    """The final image of the two branches (a new array, never one of them)."""
+    return diffuse + specular if specular is not None else diffuse.copy()
 
 
 @dataclass
