@@ -179,7 +179,8 @@ class FullImageDenoiser:
                 dark_share = float(weights.mean())
         return DenoiseResult(
             image=_beauty(diffuse, specular), diffuse=diffuse, specular=specular,
-            branches=("diffuse", "specular")[:1 + run_specular], specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
+            branches=("diffuse", "specular")[:1 + run_specular],
+            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
             nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
             network_seconds=sum(p.network_seconds for p in passes), base_seconds=sum(p.base_seconds for p in passes),
             exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
