@@ -4,7 +4,7 @@ on the same image and device, the baselines the evaluation compares against (Int
 OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 
     .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-unet]
-        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile 512]
+        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile N]
         [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
@@ -14,9 +14,10 @@ is one FullImageDenoiser call; "network" is the generators' share (synchronised:
 the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast (the denoiser's default on CUDA and on CPUs
-with AVX512-BF16 or AMX). --tile 512 (the default) runs the image in tiles with the receptive-field
-halo, as `admc-pipe denoise` and eval do; --tile 0 runs it in one piece, which on the 2-core CPU is
-about twice as slow at 1280x720 (whole-image convs leave the caches).
+with AVX512-BF16 or AMX). By default the image runs in the denoiser's own tiles with the
+receptive-field halo (tiling.default_tile: 320 on a CPU, 512 on a GPU, at least 8 halos), as
+`admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
+2-core CPU is about twice as slow at 1280x720 (whole-image convs leave the caches).
 """
 from __future__ import annotations
 
@@ -62,7 +63,7 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     torch.manual_seed(0)
     diffuse, specular = build_generator(CONFIGS[name]), build_generator(CONFIGS[name])
     height, width = layers["diffuse"].shape[:2]
-    tile = args.tile or max(height, width)
+    tile = max(height, width) if args.tile == 0 else args.tile
     # a copy of the networks per precision: the denoiser moves them to its memory layout in place
     denoisers = {p: FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device, tile=tile,
                                       dtype=PRECISIONS[p], compile=args.compile) for p in args.precisions}
@@ -85,8 +86,9 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     for precision, results in runs.items():
         network = statistics.median(r.network_seconds for r in results) * 1e3
         totals[precision] = statistics.median(r.seconds for r in results)
-        print(f"{name:6s} {precision:8s} {width}x{height} tile {tile} ({results[0].tiles} per branch, halo "
-              f"{denoisers[precision].overlap}, receptive radius {receptive_radius(diffuse)}): network "
+        denoiser = denoisers[precision]
+        print(f"{name:6s} {precision:8s} {width}x{height} tile {denoiser.tile} ({results[0].tiles} per branch, halo "
+              f"{denoiser.overlap}, receptive radius {receptive_radius(diffuse)}): network "
               f"{network:9.1f} ms/image, total {totals[precision] * 1e3:9.1f} ms/image  "
               f"[{', '.join(results[0].branches)}]", flush=True)
     base = args.precisions[0]
@@ -119,8 +121,8 @@ def main() -> None:
     parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
                         help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--tile", type=int, default=512,
-                        help="largest tile core edge (default: the denoiser's own, 512); 0: no tiling")
+    parser.add_argument("--tile", type=int, default=None,
+                        help="largest tile core edge (default: the denoiser's own); 0: no tiling")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--warmup", type=int, default=1, help="untimed runs per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")

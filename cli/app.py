@@ -199,8 +199,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
-            tile: Annotated[int, typer.Option(min=1, help="Tile size in pixels (bounds memory; results are the "
-                                                          "same).")] = 512,
+            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; results are "
+                                                                    "the same). Default: 320 on a CPU, 512 on a "
+                                                                    "GPU, at least 8 halos.")] = None,
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
                                                        "of the input: less error, that many times the time.")] = 1,
             dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "

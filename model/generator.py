@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from admc.common.layout import BASES, N_FEATURES
@@ -138,12 +137,18 @@ def conv_radius(module: nn.Module) -> int:
 def light_within(noisy: Tensor, radius: int) -> Tensor:
     """(N, 1, H, W) bool: is any channel of `noisy` nonzero within `radius` pixels (a square window)?
 
-    A max filter of the "nonzero" map, done separably (2 * (2r + 1) compares a pixel, not (2r + 1)^2).
+    A dilation of the "nonzero" map, separably, by OR-ing shifted views of a one-channel bool map: on a
+    CPU about 8x faster than max pooling, which also computes indices.
     """
-    lit = (noisy != 0).any(dim=1, keepdim=True).float()
-    size = 2 * radius + 1
-    lit = F.max_pool2d(lit, (1, size), stride=1, padding=(0, radius))
-    return F.max_pool2d(lit, (size, 1), stride=1, padding=(radius, 0)) > 0
+    lit = (noisy != 0).any(dim=1, keepdim=True)
+    for dim in (3, 2):
+        size = lit.shape[dim]
+        grown = lit.clone()
+        for shift in range(1, min(radius, size - 1) + 1):
+            grown.narrow(dim, shift, size - shift).logical_or_(lit.narrow(dim, 0, size - shift))
+            grown.narrow(dim, 0, size - shift).logical_or_(lit.narrow(dim, shift, size - shift))
+        lit = grown
+    return lit
 
 
 class Generator(nn.Module):

@@ -27,7 +27,7 @@ from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
 from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .symmetry import ENSEMBLE_CODES, apply, undo
-from .tiling import receptive_radius, run_tiled
+from .tiling import default_tile, receptive_radius, run_tiled
 from .transforms import (
     EPS,
     RADIANCE_MAX,
@@ -97,10 +97,11 @@ class FullImageDenoiser:
 
     `diffuse` and `specular` are admc Generators (or any module called as `(noisy, features)`; those
     need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
-    largest core edge run at once; `overlap` is the halo around each core, by default the largest
-    receptive radius of the two generators, and a smaller one is refused (tiles would then differ
-    from the untiled image: seams). `dtype`: None = bfloat16 autocast on CUDA and
-    on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere (precision.resolve_precision).
+    largest core edge run at once (None: tiling.default_tile, by device and halo); `overlap` is the
+    halo around each core, by default the largest receptive radius of the two generators, and a
+    smaller one is refused (tiles would then differ from the untiled image: seams). `dtype`: None =
+    bfloat16 autocast on CUDA and on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere
+    (precision.resolve_precision).
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables). `base` is what the generators correct:
@@ -114,10 +115,10 @@ class FullImageDenoiser:
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
-                 tile: int = 512, overlap: int | None = None, dtype: torch.dtype | None = None,
+                 tile: int | None = None, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
                  normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1) -> None:
-        if tile < 1:
+        if tile is not None and tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         if ensemble not in ENSEMBLE_CODES:
             raise ValueError(f"FullImageDenoiser: ensemble must be one of {tuple(ENSEMBLE_CODES)}, got {ensemble!r}")
@@ -140,7 +141,7 @@ class FullImageDenoiser:
         self.alignment = max(getattr(g, "alignment", 1) for g in self.generators.values())
         if compile:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
-        self.tile = tile
+        self.tile = tile or default_tile(self.torch_device, overlap)
         self.overlap = overlap
         self.device = (_device_description(self.torch_device) + (f", ensemble of {ensemble}" if ensemble > 1 else "")
                        + (", dark pass" if dark_pass else ""))
@@ -299,7 +300,7 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 """A learned denoiser's default column name in the tables, by the base its weights record."""
 
 
-def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int = 512,
+def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None = None,
                   compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
                   dark_pass: bool = False, ensemble: int = 1) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;

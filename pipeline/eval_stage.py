@@ -25,7 +25,6 @@ from admc.pipeline.stages import StageError, render_corpus
 from admc.pipeline.train_stage import default_weights, load_model
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
-MODEL_TILE = 512   # tile size of the learned denoiser in pixels (bounds memory; results are the same)
 
 
 class EvalStageError(AdmcError, RuntimeError):
@@ -91,7 +90,7 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     """The trained models, once per weights file (default: `default_models`), each named as its Table 1
     column."""
     named = named_weights(weights) if weights else [(None, path) for path in default_models(cfg)]
-    return [load_model(cfg, path, device, MODEL_TILE, name, cfg.eval.ensemble, cfg.eval.dark_pass)
+    return [load_model(cfg, path, device, None, name, cfg.eval.ensemble, cfg.eval.dark_pass)
             for name, path in named]
 
 

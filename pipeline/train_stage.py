@@ -143,7 +143,7 @@ def default_weights(cfg: Config) -> Path:
     return shipped
 
 
-def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int = 512,
+def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int | None = None,
                name: str | None = None, ensemble: int = 1, dark_pass: bool = False) -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
     averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a

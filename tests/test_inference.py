@@ -4,9 +4,9 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.generator import Generator, GeneratorConfig, scaled_kaiming_
+from admc.model.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
 from admc.model.inference import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
-from admc.model.tiling import axis_windows, receptive_radius, run_tiled
+from admc.model.tiling import CPU_TILE, GPU_TILE, axis_windows, default_tile, receptive_radius, run_tiled
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
@@ -117,6 +117,34 @@ def test_darkness_gate_keeps_tiles_equal_and_far_pixels_zero():
     assert float(untiled[..., ~near].abs().max()) == 0.0
     assert bool((untiled[..., near] != 0).any())  # the check can fail: light nearby is denoised
     assert (tiled - untiled).abs().max().item() <= 1e-5 * untiled.abs().max().item()
+
+
+@pytest.mark.parametrize("height, width, radius", [(23, 31, 0), (23, 31, 1), (23, 31, 5), (9, 4, 12), (1, 1, 3)])
+def test_light_within_is_a_square_window_around_every_lit_pixel(height, width, radius):
+    """The gate's dilation against its definition, pixel by pixel: any channel nonzero in the window
+    clipped to the image (a window wider than the image included)."""
+    rng = np.random.default_rng(height + radius)
+    noisy = torch.from_numpy(rng.random((2, 3, height, width), dtype=np.float32))
+    dark = rng.random((2, 1, height, width)) > 0.5 / (2 * radius + 1) ** 2  # about half the pixels see light
+    noisy[torch.from_numpy(dark).expand(-1, 3, -1, -1)] = 0.0
+    noisy[1, 1, 0, 0] = -2.0  # nonzero, not positive: light all the same
+    lit = (noisy != 0).any(dim=1)
+    expected = torch.zeros(2, 1, height, width, dtype=torch.bool)
+    for y in range(height):
+        for x in range(width):
+            window = lit[:, max(y - radius, 0):y + radius + 1, max(x - radius, 0):x + radius + 1]
+            expected[:, 0, y, x] = window.flatten(1).any(dim=1)
+    assert torch.equal(light_within(noisy, radius), expected)
+    assert torch.equal(light_within(noisy.contiguous(memory_format=torch.channels_last), radius), expected)
+    assert bool(expected.any()) and not bool(expected.all())  # the check can fail
+
+
+def test_default_tile_is_by_device_and_at_least_eight_halos():
+    assert default_tile(torch.device("cpu"), 12) == CPU_TILE == 320
+    assert default_tile(torch.device("cuda"), 12) == GPU_TILE == 512  # a device name: no GPU needed
+    assert default_tile(torch.device("cpu"), 116) == 928  # the multi-scale body's halo
+    assert FullImageDenoiser(Generator(TINY), None).tile == CPU_TILE
+    assert FullImageDenoiser(Generator(TINY), None, tile=48).tile == 48
 
 
 def test_denoiser_tiled_equals_untiled_on_a_70x90_image():
