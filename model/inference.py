@@ -173,10 +173,12 @@ class FullImageDenoiser:
         if self.dark_pass:
             weights = dark_weights(_beauty(diffuse, specular), gain, clean["coverage"])
             if weights.any():
-                passes.append(self._pass(clean, feats, gain * DARK_GAIN, run_specular))
-                diffuse = diffuse + weights * (passes[1].diffuse - diffuse)
+                region = dark_region(weights, self.overlap, self.alignment)
+                passes.append(self._pass(clean, feats, gain * DARK_GAIN, run_specular, region))
+                share = weights[region]
+                diffuse[region] += share * (passes[1].diffuse - diffuse[region])
                 if run_specular:
-                    specular = specular + weights * (passes[1].specular - specular)
+                    specular[region] += share * (passes[1].specular - specular[region])
                 dark_share = float(weights.mean())
         return DenoiseResult(
             image=_beauty(diffuse, specular), diffuse=diffuse, specular=specular,
@@ -187,16 +189,24 @@ class FullImageDenoiser:
             exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
         )
 
-    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool) -> _Pass:
-        """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units."""
+    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool,
+              region: tuple[slice, slice] = (slice(None), slice(None))) -> _Pass:
+        """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units.
+
+        Only the image's `region` (rows, columns) comes out. The networks see that crop of the inputs, so
+        wherever the crop keeps a receptive-field halo (or reaches the image border) the output equals
+        the whole image's, as between tiles (tiling.py); a refiner's OIDN bases still come from the
+        whole image, as in a whole pass."""
         albedo = clean["albedo"]
         exposed = {name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}
-        inputs = {"diffuse": diffuse_forward(exposed["diffuse"], albedo)}
-        if run_specular:
-            inputs["specular"] = specular_forward(exposed["specular"])
         base_start = time.perf_counter()
-        bases = self._bases({**clean, **exposed}, albedo, tuple(inputs))
+        bases = self._bases({**clean, **exposed}, albedo, ("diffuse", "specular")[:1 + run_specular], region)
         base_seconds = time.perf_counter() - base_start
+        albedo = albedo[region]
+        inputs = {"diffuse": diffuse_forward(exposed["diffuse"][region], albedo)}
+        if run_specular:
+            inputs["specular"] = specular_forward(exposed["specular"][region])
+        feats = feats[(..., *region)]
 
         self.synchronize()
         net_start = time.perf_counter()
@@ -207,23 +217,28 @@ class FullImageDenoiser:
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
         network_seconds = time.perf_counter() - net_start
-        outputs = _keep_environment(outputs, inputs, clean["coverage"])
+        outputs = _keep_environment(outputs, inputs, clean["coverage"][region])
 
         diffuse = diffuse_inverse(outputs["diffuse"], albedo) / np.float32(gain)
-        specular = specular_inverse(outputs["specular"]) / np.float32(gain) if run_specular else clean.get("specular")
+        if run_specular:
+            specular = specular_inverse(outputs["specular"]) / np.float32(gain)
+        else:
+            specular = clean["specular"][region].copy() if "specular" in clean else None
         return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
         return t.contiguous(memory_format=MEMORY_FORMAT)
 
-    def _bases(self, clean: dict[str, np.ndarray], albedo: np.ndarray, branches: tuple[str, ...]) -> dict[str, Tensor]:
-        """A refiner's inputs from OIDN, per branch it runs, in that branch's log domain; {} for base "noisy"."""
+    def _bases(self, clean: dict[str, np.ndarray], albedo: np.ndarray, branches: tuple[str, ...],
+               region: tuple[slice, slice]) -> dict[str, Tensor]:
+        """A refiner's inputs from OIDN on the whole image, cropped to `region`, per branch it runs, in that
+        branch's log domain; {} for base "noisy"."""
         if self.base == "noisy":
             return {}
         linear = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)})
-        forward = {"diffuse": lambda x: diffuse_forward(x, albedo), "specular": specular_forward}
-        return {branch: self._tensor(forward[branch](linear[branch])) for branch in branches}
+        forward = {"diffuse": lambda x: diffuse_forward(x, albedo[region]), "specular": specular_forward}
+        return {branch: self._tensor(forward[branch](linear[branch][region])) for branch in branches}
 
     def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
         codes = ENSEMBLE_CODES[self.ensemble]
@@ -233,6 +248,19 @@ class FullImageDenoiser:
                            code).float() for code in codes) / len(codes)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+
+
+def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, slice]:
+    """The rows and columns the dark pass must run on: the bounding box of the pixels with a weight, grown
+    by the networks' halo and started on their grid (tiling.axis_windows' two conditions for exactness).
+    A small object's shadows on a black background need a fraction of the image."""
+    def span(lit: np.ndarray) -> slice:
+        first, last = np.flatnonzero(lit)[[0, -1]]
+        start = max(int(first) - halo, 0)
+        return slice(start - start % alignment, min(int(last) + 1 + halo, lit.size))
+
+    dark = weights[..., 0] > 0
+    return span(dark.any(axis=1)), span(dark.any(axis=0))
 
 
 def _beauty(diffuse: np.ndarray, specular: np.ndarray | None) -> np.ndarray:

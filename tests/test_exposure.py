@@ -5,9 +5,9 @@ import pytest
 import torch
 from torch import nn
 
-from test_inference import render_layers, strong_generator
+from test_inference import LOG_TOLERANCE, render_layers, strong_generator
 from admc.model.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
-from admc.model.inference import FullImageDenoiser
+from admc.model.inference import FullImageDenoiser, dark_region
 from admc.model.transforms import RADIANCE_MAX
 
 def denoiser(normalize: bool, dark_pass: bool = True) -> FullImageDenoiser:
@@ -106,3 +106,40 @@ def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
     result = offset_denoiser(True)(bright)
     assert result.dark_share == 0.0
     np.testing.assert_array_equal(result.image, offset_denoiser(False)(bright).image)
+
+
+def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pass():
+    """A dark corner: the second pass runs on its bounding box plus the networks' halo (in tiles, at that),
+    and the result equals blending a whole-image pass at DARK_GAIN x the exposure."""
+    layers = render_layers(70, 90, seed=7)
+    for name in ("diffuse", "specular"):
+        layers[name] += np.float32(1.0)
+        layers[name][50:, 60:] *= np.float32(1e-4)  # the bottom-right corner is dark
+
+    def make(dark_pass: bool) -> FullImageDenoiser:
+        return FullImageDenoiser(strong_generator(1, scale=0.7), strong_generator(2, scale=0.7), tile=16,
+                                 dtype=torch.float32, normalize_exposure=False, dark_pass=dark_pass)
+
+    twice, once = make(True)(layers), make(False)(layers)
+    brighter = make(False)(scaled(layers, DARK_GAIN))  # the whole image at the second pass's exposure
+    weights = dark_weights(once.image, 1.0, layers["coverage"])
+    rows, cols = dark_region(weights, make(True).overlap, 1)
+    assert 0 < rows.start < 50 and rows.stop == 70 and 0 < cols.start < 60 and cols.stop == 90
+    assert not weights[:rows.start].any() and not weights[:, :cols.start].any()
+    for branch in ("diffuse", "specular"):
+        first, second = getattr(once, branch), getattr(brighter, branch) / DARK_GAIN
+        expected = first + weights * (second - first)
+        # crops and tiles differ by LOG_TOLERANCE in the log domain; back in linear units at 1/DARK_GAIN
+        # that is up to LOG_TOLERANCE * (v + (albedo + eps) / DARK_GAIN) on a value v
+        np.testing.assert_allclose(getattr(twice, branch), expected, rtol=2 * LOG_TOLERANCE,
+                                   atol=2 * LOG_TOLERANCE / DARK_GAIN)
+    corner = np.abs(twice.image - once.image)[50:, 60:] / (np.abs(once.image[50:, 60:]) + 1e-3)
+    assert float(corner.max()) > 1e-2  # the check can fail: the second pass changed the corner
+
+
+def test_dark_region_starts_on_the_generators_grid():
+    weights = np.zeros((40, 50, 1), np.float32)
+    weights[21:23, 30:31] = 0.5
+    assert dark_region(weights, 3, 1) == (slice(18, 26), slice(27, 34))
+    assert dark_region(weights, 3, 8) == (slice(16, 26), slice(24, 34))
+    assert dark_region(weights, 30, 8) == (slice(0, 40), slice(0, 50))
