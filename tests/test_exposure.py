@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from test_inference import LOG_TOLERANCE, render_layers, strong_generator
+from test_unet import strong_unet
 from admc.model.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
 from admc.model.inference import FullImageDenoiser, dark_region
 from admc.model.transforms import RADIANCE_MAX
@@ -108,23 +109,29 @@ def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
     np.testing.assert_array_equal(result.image, offset_denoiser(False)(bright).image)
 
 
-def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pass():
-    """A dark corner: the second pass runs on its bounding box plus the networks' halo (in tiles, at that),
-    and the result equals blending a whole-image pass at DARK_GAIN x the exposure."""
-    layers = render_layers(70, 90, seed=7)
+@pytest.mark.parametrize("backbone", ["residual", "unet"])
+def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pass(backbone):
+    """A dark corner: the second pass runs on its bounding box plus the networks' halo (in tiles, at that;
+    for the multi-scale body starting on its coarse grid), and the result equals blending a whole-image
+    pass at DARK_GAIN x the exposure."""
+    height, width, top, left = (70, 90, 50, 60) if backbone == "residual" else (96, 128, 80, 110)
+    layers = render_layers(height, width, seed=7)
     for name in ("diffuse", "specular"):
         layers[name] += np.float32(1.0)
-        layers[name][50:, 60:] *= np.float32(1e-4)  # the bottom-right corner is dark
+        layers[name][top:, left:] *= np.float32(1e-4)  # the bottom-right corner is dark
+
+    def generator(seed: int):
+        return strong_generator(seed, scale=0.7) if backbone == "residual" else strong_unet(seed)
 
     def make(dark_pass: bool) -> FullImageDenoiser:
-        return FullImageDenoiser(strong_generator(1, scale=0.7), strong_generator(2, scale=0.7), tile=16,
+        return FullImageDenoiser(generator(1), generator(2), tile=16 if backbone == "residual" else 32,
                                  dtype=torch.float32, normalize_exposure=False, dark_pass=dark_pass)
 
     twice, once = make(True)(layers), make(False)(layers)
     brighter = make(False)(scaled(layers, DARK_GAIN))  # the whole image at the second pass's exposure
     weights = dark_weights(once.image, 1.0, layers["coverage"])
-    rows, cols = dark_region(weights, make(True).overlap, 1)
-    assert 0 < rows.start < 50 and rows.stop == 70 and 0 < cols.start < 60 and cols.stop == 90
+    rows, cols = dark_region(weights, make(True).overlap, make(True).alignment)
+    assert 0 < rows.start < top and rows.stop == height and 0 < cols.start < left and cols.stop == width
     assert not weights[:rows.start].any() and not weights[:, :cols.start].any()
     for branch in ("diffuse", "specular"):
         first, second = getattr(once, branch), getattr(brighter, branch) / DARK_GAIN
@@ -133,7 +140,7 @@ def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pas
         # that is up to LOG_TOLERANCE * (v + (albedo + eps) / DARK_GAIN) on a value v
         np.testing.assert_allclose(getattr(twice, branch), expected, rtol=2 * LOG_TOLERANCE,
                                    atol=2 * LOG_TOLERANCE / DARK_GAIN)
-    corner = np.abs(twice.image - once.image)[50:, 60:] / (np.abs(once.image[50:, 60:]) + 1e-3)
+    corner = np.abs(twice.image - once.image)[top:, left:] / (np.abs(once.image[top:, left:]) + 1e-3)
     assert float(corner.max()) > 1e-2  # the check can fail: the second pass changed the corner
 
 
