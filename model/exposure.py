@@ -12,9 +12,10 @@ units. Bright images keep k = 1: scaling them down measured worse, not better.
 
 The same holds inside one image: the dark regions of a bright image (shadows, the dim side of an
 object) sit in log1p's linear range too, where the networks' small absolute error in the log domain is
-a large relative one. So a second pass denoises the whole image at DARK_GAIN times the exposure, and
-dark_weights() takes each pixel from it by how dark the first pass found it. Measured with the shipped
-weights, ensemble 4, as multiples of one pass, at 4 / 16 / 64 spp (README: Dark regions).
+a large relative one. So a second pass denoises the dark region again at DARK_GAIN times the exposure
+(inference.dark_region), and dark_weights() takes each pixel from it by how dark the first pass found
+it. Measured with the shipped weights, ensemble 4, as multiples of one pass, at 4 / 16 / 64 spp
+(README: Dark regions).
 """
 from __future__ import annotations
 

@@ -197,12 +197,11 @@ class FullImageDenoiser:
         wherever the crop keeps a receptive-field halo (or reaches the image border) the output equals
         the whole image's, as between tiles (tiling.py); a refiner's OIDN bases still come from the
         whole image, as in a whole pass."""
-        albedo = clean["albedo"]
         exposed = {name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}
         base_start = time.perf_counter()
-        bases = self._bases({**clean, **exposed}, albedo, ("diffuse", "specular")[:1 + run_specular], region)
+        bases = self._bases({**clean, **exposed}, ("diffuse", "specular")[:1 + run_specular], region)
         base_seconds = time.perf_counter() - base_start
-        albedo = albedo[region]
+        albedo = clean["albedo"][region]
         inputs = {"diffuse": diffuse_forward(exposed["diffuse"][region], albedo)}
         if run_specular:
             inputs["specular"] = specular_forward(exposed["specular"][region])
@@ -223,21 +222,21 @@ class FullImageDenoiser:
         if run_specular:
             specular = specular_inverse(outputs["specular"]) / np.float32(gain)
         else:
-            specular = clean["specular"][region].copy() if "specular" in clean else None
+            specular = clean["specular"][region] if "specular" in clean else None  # passed through, never written
         return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
         return t.contiguous(memory_format=MEMORY_FORMAT)
 
-    def _bases(self, clean: dict[str, np.ndarray], albedo: np.ndarray, branches: tuple[str, ...],
+    def _bases(self, clean: dict[str, np.ndarray], branches: tuple[str, ...],
                region: tuple[slice, slice]) -> dict[str, Tensor]:
         """A refiner's inputs from OIDN on the whole image, cropped to `region`, per branch it runs, in that
         branch's log domain; {} for base "noisy"."""
         if self.base == "noisy":
             return {}
         linear = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)})
-        forward = {"diffuse": lambda x: diffuse_forward(x, albedo[region]), "specular": specular_forward}
+        forward = {"diffuse": lambda x: diffuse_forward(x, clean["albedo"][region]), "specular": specular_forward}
         return {branch: self._tensor(forward[branch](linear[branch][region])) for branch in branches}
 
     def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
