@@ -1,0 +1,74 @@
+#!/usr/bin/env python3
+"""Do admc and OIDN make the same errors? Scores each, and their per-pixel mean, against the references.
+
+    python scripts/blend_check.py SCENE_DIR ... [--weights FILE] [--ensemble 4] [--no-dark-pass] [--threads 2]
+
+Each SCENE_DIR is one scene folder of a workdir's `renders/` (spp*.exr, reference.exr and its .json).
+admc runs as Table 1 runs it (eval.ensemble, eval.dark_pass), OIDN as Table 1's baseline ("high").
+Prints, per family and spp, the relMSE and 1-SSIM averages of OIDN, admc, their mean, and their mean with
+the environment pixels (coverage 0) taken from admc alone, each as a multiple of OIDN's, and on how many
+images each of the two means beats both admc and OIDN. Where the mean beats both, the two make partly
+independent errors: what a refiner of OIDN that also sees admc's output could use. Point it at scenes
+you do not test on.
+"""
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from admc.common.metrics import one_minus_ssim, relmse
+from admc.model.inference import load_denoiser
+from admc.pipeline.evaluation.baselines import OidnDenoiser
+from admc.pipeline.evaluation.inputs import read_reference
+from admc.stores.exr import read_exr
+
+SHIPPED = Path(__file__).resolve().parents[1] / "weights" / "admc-small-pretrained.pt"
+METHODS = ("oidn", "admc", "mean", "mean, environment from admc")
+
+
+def outputs(admc, oidn, layers: dict) -> dict[str, np.ndarray]:
+    ours, theirs = admc(layers).image, oidn.denoise(layers)
+    mean = 0.5 * (ours + theirs)
+    environment = layers["coverage"][..., :1] <= 0 if "coverage" in layers else np.zeros_like(mean[..., :1], bool)
+    return dict(zip(METHODS, (theirs, ours, mean, np.where(environment, ours, mean))))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenes", type=Path, nargs="+", help="scene folders of a renders/ directory")
+    parser.add_argument("--weights", type=Path, default=SHIPPED)
+    parser.add_argument("--ensemble", type=int, default=4)
+    parser.add_argument("--no-dark-pass", action="store_true")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    for scene in args.scenes:
+        if not (scene / "reference.exr").is_file() or not list(scene.glob("spp*.exr")):
+            parser.error(f"{scene}: no reference.exr and spp*.exr there (give scene folders of a workdir's renders/)")
+    torch.set_num_threads(args.threads)
+    admc = load_denoiser(args.weights, ensemble=args.ensemble, dark_pass=not args.no_dark_pass)
+    oidn = OidnDenoiser(quality="high")
+    scores = defaultdict(list)  # (family, spp) -> per image: [relMSE per method, 1-SSIM per method]
+    for scene in args.scenes:
+        family = json.loads((scene / "reference.json").read_text())["family"]
+        ref, _ = read_reference(scene / "reference.exr")
+        for noisy in sorted(scene.glob("spp*.exr")):
+            images = outputs(admc, oidn, read_exr(noisy)).values()
+            row = [relmse(x, ref) for x in images] + [one_minus_ssim(x, ref) for x in images]
+            scores[family, int(noisy.stem[3:])].append(row)
+        print(f"scored {scene}", flush=True)
+    n = len(METHODS)
+    print(f"\nper family and spp, each average as a multiple of OIDN's ({', '.join(METHODS)}); "
+          "'beats both': images where the method beats admc and OIDN alone")
+    for (family, spp), rows in sorted(scores.items(), key=lambda item: (item[0][1], item[0][0])):
+        table = np.array(rows)
+        for metric, part in (("relMSE", table[:, :n]), ("1-SSIM", table[:, n:])):
+            ratios = " ".join(f"{r:.3f}" for r in part.mean(axis=0) / part[:, 0].mean())
+            beats = " ".join(str(int((part[:, i] < part[:, :2].min(axis=1)).sum())) for i in (2, 3))
+            print(f"{spp:4d} spp  {family:10s} n={len(table):2d}  {metric:6s}  {ratios}   beats both: {beats}")
+
+
+if __name__ == "__main__":
+    main()
