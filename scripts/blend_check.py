@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
 """Do admc and OIDN make the same errors? Scores each, and their per-pixel mean, against the references.
 
-    python scripts/blend_check.py SCENE_DIR ... [--weights FILE] [--ensemble 4] [--no-dark-pass] [--threads 2]
+    python scripts/blend_check.py SCENE_DIR ... [--weights FILE] [--ensemble N] [--no-dark-pass] [--threads 2]
 
 Each SCENE_DIR is one scene folder of a workdir's `renders/` (spp*.exr, reference.exr and its .json).
-admc runs as Table 1 runs it (eval.ensemble, eval.dark_pass), OIDN as Table 1's baseline ("high").
+admc runs as Table 1 runs it (the default config's eval.ensemble and eval.dark_pass), OIDN as Table 1's
+baseline (eval.oidn_quality).
 Prints, per family and spp, the relMSE and 1-SSIM averages of OIDN, admc, their mean, and their mean with
 the environment pixels (coverage 0) taken from admc alone, each as a multiple of OIDN's, and on how many
 images each of the two means beats both admc and OIDN. Where the mean beats both, the two make partly
@@ -21,6 +22,7 @@ import torch
 
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference import load_denoiser
+from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.evaluation.inputs import read_reference
 from admc.stores.exr import read_exr
@@ -37,10 +39,11 @@ def outputs(admc, oidn, layers: dict) -> dict[str, np.ndarray]:
 
 
 def main() -> None:
+    table1 = load_config().eval
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", type=Path, nargs="+", help="scene folders of a renders/ directory")
     parser.add_argument("--weights", type=Path, default=SHIPPED)
-    parser.add_argument("--ensemble", type=int, default=4)
+    parser.add_argument("--ensemble", type=int, default=table1.ensemble)
     parser.add_argument("--no-dark-pass", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -48,8 +51,8 @@ def main() -> None:
         if not (scene / "reference.exr").is_file() or not list(scene.glob("spp*.exr")):
             parser.error(f"{scene}: no reference.exr and spp*.exr there (give scene folders of a workdir's renders/)")
     torch.set_num_threads(args.threads)
-    admc = load_denoiser(args.weights, ensemble=args.ensemble, dark_pass=not args.no_dark_pass)
-    oidn = OidnDenoiser(quality="high")
+    admc = load_denoiser(args.weights, ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass)
+    oidn = OidnDenoiser(quality=table1.oidn_quality)
     scores = defaultdict(list)  # (family, spp) -> per image: [relMSE per method, 1-SSIM per method]
     for scene in args.scenes:
         family = json.loads((scene / "reference.json").read_text())["family"]
