@@ -3,7 +3,7 @@
 
     python scripts/blend_check.py SCENE_DIR ... [--weights FILE] [--ensemble N] [--no-dark-pass] [--threads 2]
 
-Each SCENE_DIR is one scene folder of a workdir's `renders/` (spp*.exr, reference.exr and its .json).
+Each SCENE_DIR is one scene folder of a workdir's `renders/` (spp*.exr, reference.exr and their .json sidecars).
 admc runs as Table 1 runs it (the default config's eval.ensemble and eval.dark_pass), OIDN as Table 1's
 baseline (eval.oidn_quality).
 Prints, per family and spp, the relMSE and 1-SSIM averages of OIDN, admc, their mean, and their mean with
@@ -24,7 +24,8 @@ from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference import load_denoiser
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
-from admc.pipeline.evaluation.inputs import read_reference
+from admc.pipeline.evaluation.inputs import by_scene, find_test_images, read_reference
+from admc.pipeline.evaluation.records import EvalError
 from admc.stores.exr import read_exr
 
 SHIPPED = Path(__file__).resolve().parents[1] / "weights" / "admc-small-pretrained.pt"
@@ -47,21 +48,23 @@ def main() -> None:
     parser.add_argument("--no-dark-pass", action="store_true")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
-    for scene in args.scenes:
-        if not (scene / "reference.exr").is_file() or not list(scene.glob("spp*.exr")):
-            parser.error(f"{scene}: no reference.exr and spp*.exr there (give scene folders of a workdir's renders/)")
+    try:  # Table 1's own reading of a renders folder: its checks name a missing or broken file
+        images = [image for scene in args.scenes for image in find_test_images(scene.parent, [scene.name])]
+    except EvalError as exc:
+        parser.error(str(exc))
     torch.set_num_threads(args.threads)
     admc = load_denoiser(args.weights, ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass)
     oidn = OidnDenoiser(quality=table1.oidn_quality)
     scores = defaultdict(list)  # (family, spp) -> per image: [relMSE per method, 1-SSIM per method]
-    for scene in args.scenes:
-        family = json.loads((scene / "reference.json").read_text())["family"]
-        ref, _ = read_reference(scene / "reference.exr")
-        for noisy in sorted(scene.glob("spp*.exr")):
-            images = outputs(admc, oidn, read_exr(noisy)).values()
-            row = [relmse(x, ref) for x in images] + [one_minus_ssim(x, ref) for x in images]
-            scores[family, int(noisy.stem[3:])].append(row)
-        print(f"scored {scene}", flush=True)
+    for scene_id, group in by_scene(images).items():
+        reference_path = group[0].reference_path
+        family = json.loads(reference_path.with_suffix(".json").read_text())["family"]
+        ref, _ = read_reference(reference_path)
+        for test in group:
+            denoised = outputs(admc, oidn, read_exr(test.noisy_path)).values()
+            row = [relmse(x, ref) for x in denoised] + [one_minus_ssim(x, ref) for x in denoised]
+            scores[family, test.spp].append(row)
+        print(f"scored {scene_id}", flush=True)
     n = len(METHODS)
     print(f"\nper family and spp, each average as a multiple of OIDN's ({', '.join(METHODS)}); "
           "'beats both': images where the method beats admc and OIDN alone")
