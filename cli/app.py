@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from admc.common.layout import ENSEMBLES
+from admc.common.layout import ENGINES, ENSEMBLES
 from admc.errors import AdmcError
 from admc.pipeline import config as config_mod
 
@@ -207,6 +207,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
                                                          "them from there (eval's default): up to twice the "
                                                          "time.")] = False,
+            engine: Annotated[Optional[str], typer.Option(help="What runs the networks: torch | onnxruntime | "
+                                                               "openvino (CPU only; docs/engines.md). Default: "
+                                                               "eval.engine of the config.")] = None,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.train_stage import load_model
@@ -217,6 +220,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
         raise typer.BadParameter("--output names one file; give one input, or leave it out")
     if ensemble not in ENSEMBLES:
         raise typer.BadParameter(f"--ensemble must be one of {', '.join(map(str, ENSEMBLES))}, got {ensemble}")
+    if engine is not None and engine not in ENGINES:
+        raise typer.BadParameter(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
     cfg, model, written, failed = _load(config, set_), None, [], []
     for path in inputs:
         try:
@@ -224,7 +229,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
             check_output_path(target, source)
             if model is None:  # after the first input checks out
-                model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass)
+                model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
+                                   engine=engine or cfg.eval.engine)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
@@ -282,6 +288,19 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     console.print(f"test scenes: {', '.join(outcome.scene_ids)}")
     console.print(f"HTML report: {outcome.report}")
     console.print(f"tables and plots: {outcome.report.parent}")
+
+
+@app.command()
+@_user_errors
+def export(weights: Annotated[Path, typer.Argument(help="Weights or checkpoint file to export.")],
+           out_dir: Annotated[Path, typer.Option("--output", "-o", help="Folder for {branch}.onnx and admc.json "
+                                                 "(created; other files in it are kept).")]) -> None:
+    """Both branches' generators as ONNX graphs (dynamic height and width) and admc.json, what runs around
+    them: to run admc in a renderer without Python (docs/engines.md)."""
+    from admc.pipeline.export import export_onnx
+
+    for path in export_onnx(weights, out_dir):
+        console.print(f"wrote {path}", markup=False)
 
 
 @app.command()

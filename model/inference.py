@@ -22,10 +22,11 @@ from torch import Tensor, nn
 
 from admc.common.diff import differing_keys
 
+from .engines import check_engine, default_precision, onnx_generators
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .generator import Generator, build_generator
 from .oidn_base import oidn_bases
-from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
+from .precision import MEMORY_FORMAT, autocast_for, precision_name
 from .symmetry import ENSEMBLE_CODES, apply, undo
 from .tiling import default_tile, receptive_radius, run_tiled
 from .transforms import (
@@ -110,14 +111,17 @@ class FullImageDenoiser:
     `dark_pass` denoises the image a second time at DARK_GAIN times the exposure where it has dark
     regions, and takes those from it (exposure.dark_weights): up to twice the network time.
     `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
-    (symmetry.py), at that many times the network time.
+    (symmetry.py), at that many times the network time. `engine` runs the generators' forward passes:
+    "torch" (the reference), or on a CPU their exported ONNX graphs in "onnxruntime" (float32) or
+    "openvino" (`dtype` as for torch: its INFERENCE_PRECISION_HINT); everything around them is the same.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
     def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
                  tile: int | None = None, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
-                 normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1) -> None:
+                 normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1,
+                 engine: str = "torch") -> None:
         if tile is not None and tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         if ensemble not in ENSEMBLE_CODES:
@@ -125,7 +129,10 @@ class FullImageDenoiser:
         self.torch_device = torch.device(device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
-        self.dtype = dtype or resolve_precision("auto", self.torch_device)
+        self.dtype = dtype or default_precision(engine, self.torch_device)
+        check_engine(engine, self.torch_device, self.dtype)
+        if compile and engine != "torch":
+            raise ValueError(f"FullImageDenoiser: compile is torch.compile, engine {engine!r} compiles its own graph")
         self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
@@ -141,9 +148,13 @@ class FullImageDenoiser:
         self.alignment = max(getattr(g, "alignment", 1) for g in self.generators.values())
         if compile:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
+        if engine != "torch":
+            self.generators = onnx_generators(self.generators, engine, self.dtype)
+        self.engine = engine
         self.tile = tile or default_tile(self.torch_device, overlap)
         self.overlap = overlap
-        self.device = (_device_description(self.torch_device) + (f", ensemble of {ensemble}" if ensemble > 1 else "")
+        self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
+                       + (f", ensemble of {ensemble}" if ensemble > 1 else "")
                        + (", dark pass" if dark_pass else ""))
         self.name, self.source = name, source
         self.normalize_exposure = normalize_exposure
@@ -329,7 +340,8 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None = None,
                   compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
-                  dark_pass: bool = False, ensemble: int = 1) -> FullImageDenoiser:
+                  dark_pass: bool = False, ensemble: int = 1, engine: str = "torch",
+                  dtype: torch.dtype | None = None) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
@@ -360,4 +372,5 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
         generators[branch] = generator.eval()
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
-                             normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble)
+                             normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble,
+                             engine=engine, dtype=dtype)

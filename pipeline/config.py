@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from admc.common.layout import ENSEMBLES
+from admc.common.layout import ENGINES, ENSEMBLES
 from admc.errors import AdmcError
 from admc.model.critic import DOWNSAMPLING
 from admc.model.settings import ModelSettings, TrainSettings
@@ -101,6 +101,7 @@ class EvalConfig:
     test_seed: int
     ensemble: int
     dark_pass: bool
+    engine: str
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",
@@ -114,6 +115,7 @@ class EvalConfig:
         _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
         _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
         _require(self.ensemble in ENSEMBLES, "eval.ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
+        _require(self.engine in ENGINES, "eval.engine", f"must be one of {', '.join(ENGINES)}, got {self.engine!r}")
 
 
 @dataclass(frozen=True)

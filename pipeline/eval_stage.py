@@ -90,7 +90,8 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     """The trained models, once per weights file (default: `default_models`), each named as its Table 1
     column."""
     named = named_weights(weights) if weights else [(None, path) for path in default_models(cfg)]
-    return [load_model(cfg, path, device, name=name, ensemble=cfg.eval.ensemble, dark_pass=cfg.eval.dark_pass)
+    return [load_model(cfg, path, device, name=name, ensemble=cfg.eval.ensemble, dark_pass=cfg.eval.dark_pass,
+                       engine=cfg.eval.engine)
             for name, path in named]
 
 

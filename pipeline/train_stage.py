@@ -144,9 +144,10 @@ def default_weights(cfg: Config) -> Path:
 
 
 def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int | None = None,
-               name: str | None = None, ensemble: int = 1, dark_pass: bool = False) -> FullImageDenoiser:
+               name: str | None = None, ensemble: int = 1, dark_pass: bool = False,
+               engine: str = "torch") -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
     averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
-    second, brighter pass if `dark_pass` (model/exposure.py)."""
+    second, brighter pass if `dark_pass` (model/exposure.py), its networks run by `engine` (model/engines.py)."""
     return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
-                         ensemble=ensemble, dark_pass=dark_pass)
+                         ensemble=ensemble, dark_pass=dark_pass, engine=engine)

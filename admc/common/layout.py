@@ -9,6 +9,8 @@ Image Denoise's output for the same branch (the admc+oidn refiner, which sees th
 through its EncoderNet)."""
 ENSEMBLES = (1, 2, 4, 8)
 """How many symmetries of an input a denoiser may average its outputs over (model/symmetry.py)."""
+ENGINES = ("torch", "onnxruntime", "openvino")
+"""What may run a denoiser's networks (model/engines.py): torch, or their ONNX graphs on a CPU."""
 
 FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
 """The feature channels in the authors' order: normal(3), depth(1), albedo(3)."""

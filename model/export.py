@@ -1,0 +1,81 @@
+"""Each branch's generator as an ONNX graph, and a JSON of what runs around it: admc without Python.
+
+A graph is one branch's `Generator.forward`, darkness gate and input skip included, with dynamic
+height and width: inputs `noisy` (1, 3, H, W) in the branch's log domain, `features` (1, 7, H, W) and, for
+a refiner, `base` (1, 3, H, W: OIDN's output of the branch, same log domain); output `denoised`
+(1, 3, H, W), log domain. Everything else (sanitising, the forward and inverse transforms, the output
+clamp, environment pixels, tiling) is described in the JSON (`export_manifest`) so that a renderer can
+do it in its own code; docs/engines.md spells it out.
+"""
+from __future__ import annotations
+
+import copy
+import warnings
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from admc.common.layout import FEATURE_CHANNELS
+
+from .generator import Generator
+
+OPSET = 17
+"""ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""
+MANIFEST_NAME = "admc.json"
+FORMAT = "admc-onnx"
+FORMAT_VERSION = 1
+
+
+def input_names(generator: Generator) -> list[str]:
+    """The graph's inputs, in the order `forward` takes them."""
+    return ["noisy", "features", "base"] if generator.config.refines else ["noisy", "features"]
+
+
+def export_generator(generator: Generator, path: Path) -> None:
+    """Write `generator` (float32, on the CPU; the module itself is left as it is) as an ONNX graph at `path`.
+
+    The trace runs on a small example with height and width marked dynamic; the darkness gate traces
+    as max pooling (generator.light_within), which is the same dilation for any size."""
+    module = copy.deepcopy(generator).float().cpu().eval()
+    names = input_names(module)
+    size = 2 * module.alignment * 4
+    example = tuple(torch.rand(1, 3 if name != "features" else len(FEATURE_CHANNELS), size, size) for name in names)
+    dynamic = {name: {2: "height", 3: "width"} for name in [*names, "denoised"]}
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's warnings about shape checks turned into constants
+        torch.onnx.export(module, example, str(path), input_names=names, output_names=["denoised"],
+                          dynamic_axes=dynamic, opset_version=OPSET, dynamo=False)
+
+
+def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float]) -> dict:
+    """What a renderer must run around the graphs, JSON-ready (see docs/engines.md)."""
+    first = next(iter(generators.values()))
+    halo = max(g.receptive_radius() for g in generators.values())
+    return {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "opset": OPSET,
+        "base": first.config.base,
+        "graphs": {branch: f"{branch}.onnx" for branch in generators},
+        "inputs": {
+            "noisy": "the branch's radiance in its log domain (transform.diffuse or transform.specular), RGB",
+            "features": list(FEATURE_CHANNELS),
+            **({"base": "OIDN's output of the branch (hdr, albedo + normal), same log domain, RGB"}
+               if first.config.refines else {}),
+        },
+        "layout": "NCHW float32, N = 1",
+        "output": {
+            "denoised": "the branch in its log domain: clamp to [0, log_max], invert with transform.*_inverse",
+            "log_max": log_max,
+            "environment": "where coverage = 0 keep the input (noisy) value instead of the output",
+        },
+        "eps": transform["eps"],
+        "transform": transform,
+        "gate_radius": {branch: g.gate_radius for branch, g in generators.items()},
+        "receptive_radius": halo,
+        "tile": {"halo": halo, "alignment": max(g.alignment for g in generators.values()),
+                 "rule": "crop each tile with `halo` pixels of image on every side that is not the image border "
+                         "(shift crops inwards at the borders, start them at multiples of `alignment`) and keep "
+                         "only its core: equal to the untiled result"},
+    }

@@ -1,0 +1,35 @@
+"""`admc-pipe export`: a weights file's generators as ONNX graphs plus the JSON of what runs around them."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from admc.errors import AdmcError
+from admc.model.export import MANIFEST_NAME, export_generator, export_manifest
+from admc.model.inference import LOG_MAX, load_denoiser
+from admc.model.transforms import transform_spec
+from admc.stores.atomic import publishing, write_json
+
+
+class ExportError(AdmcError, ValueError):
+    """The export's output folder cannot be written as asked."""
+
+
+def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
+    """Write `out_dir`/{branch}.onnx per branch and `out_dir`/admc.json; returns their paths.
+
+    Each file is published atomically, the JSON last, so a folder with an admc.json holds the graphs it
+    names. Other files in `out_dir` are left alone."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportError(f"{out_dir}: exists and is not a folder (export writes a folder of graphs)")
+    generators = load_denoiser(weights).generators  # checks the file: format, transforms, architecture
+    written = [out_dir / f"{branch}.onnx" for branch in generators]
+    try:
+        for path, generator in zip(written, generators.values()):
+            with publishing(path) as tmp:
+                export_generator(generator, tmp)
+        manifest = export_manifest(generators, transform_spec(), LOG_MAX)
+        write_json(out_dir / MANIFEST_NAME, {**manifest, "weights": Path(weights).name})
+    except OSError as exc:
+        raise ExportError(f"{out_dir}: cannot write the export there ({exc.strerror or exc})") from None
+    return [*written, out_dir / MANIFEST_NAME]

@@ -1,0 +1,71 @@
+"""The CPU engines behind FullImageDenoiser: ONNX Runtime and OpenVINO give torch's result, tiled, with the
+ensemble and the dark pass around them; what an engine cannot do is refused."""
+import numpy as np
+import pytest
+import torch
+from test_export import FLOAT32_LOG_TOLERANCE
+from test_inference import render_layers
+
+from admc.model.engines import EngineError, OnnxGenerator
+from admc.model.inference import load_denoiser
+from admc.model.precision import cpu_has_fast_bf16
+from admc.model.transforms import diffuse_forward, specular_forward
+from admc.pipeline.train_stage import WEIGHTS_DIR
+
+SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"
+BF16_ERROR_RATIO = 2.0
+"""bf16 keeps 8 significant bits (unit roundoff 2^-8) of each conv's inputs and weights in either engine;
+how far a bf16 run lies from float32 depends on where the engine rounds, not on which engine it is, so
+OpenVINO's mean log error may be at most this many times torch autocast's own on the same image."""
+
+
+def log_branches(result, layers):
+    """The result's branches in the networks' log domain, where a rounding error is a relative one."""
+    return np.concatenate([diffuse_forward(result.diffuse, layers["albedo"]), specular_forward(result.specular)])
+
+
+def dark_layers():
+    """A bright image with a shadowed corner, so that the dark pass runs on part of it."""
+    layers = render_layers(56, 72, seed=3)
+    for name in ("diffuse", "specular"):
+        layers[name][30:, 40:] *= 1e-3
+    return layers
+
+
+@pytest.mark.parametrize("engine", ["onnxruntime", "openvino"])
+@pytest.mark.parametrize("tile", [None, 20])
+def test_float32_engines_give_the_torch_result(engine, tile):
+    layers = dark_layers()
+    options = dict(tile=tile, dtype=torch.float32, dark_pass=True, ensemble=2)
+    reference = load_denoiser(SHIPPED, **options)(layers)
+    denoiser = load_denoiser(SHIPPED, engine=engine, **options)
+    assert isinstance(denoiser.generators["diffuse"], OnnxGenerator)
+    assert f"{engine} float32" in denoiser.device  # said next to its timings in the tables
+    result = denoiser(layers)
+    assert result.dark_share > 0 and result.tiles == reference.tiles
+    error = np.abs(log_branches(result, layers) - log_branches(reference, layers))
+    assert error.max() <= FLOAT32_LOG_TOLERANCE
+
+
+def test_openvino_in_the_precision_it_picks_gives_the_torch_result():
+    """bf16 where the CPU computes it (AVX512-BF16 or AMX), float32 elsewhere; tiled."""
+    layers = render_layers(48, 64, seed=4)
+    exact = log_branches(load_denoiser(SHIPPED, tile=20, dtype=torch.float32)(layers), layers)
+    denoiser = load_denoiser(SHIPPED, tile=20, engine="openvino")
+    error = np.abs(log_branches(denoiser(layers), layers) - exact)
+    if not cpu_has_fast_bf16():
+        assert denoiser.dtype == torch.float32 and error.max() <= FLOAT32_LOG_TOLERANCE
+        return
+    assert denoiser.dtype == torch.bfloat16
+    torch_bf16 = np.abs(log_branches(load_denoiser(SHIPPED, tile=20, dtype=torch.bfloat16)(layers), layers) - exact)
+    assert error.mean() <= BF16_ERROR_RATIO * torch_bf16.mean(), (error.mean(), torch_bf16.mean())
+
+
+@pytest.mark.parametrize("engine,options,message", [
+    ("tensorrt", {}, "engine 'tensorrt': not one of torch, onnxruntime, openvino"),
+    ("onnxruntime", {"dtype": torch.bfloat16}, "engine 'onnxruntime' runs float32 only"),
+    ("openvino", {"compile": True}, "compile is torch.compile"),
+])
+def test_what_an_engine_cannot_do_is_refused(engine, options, message):
+    with pytest.raises(ValueError, match=message):
+        load_denoiser(SHIPPED, engine=engine, **options)

@@ -1,0 +1,67 @@
+"""`admc-pipe export`: the shipped weights' generators as ONNX graphs, run by ONNX Runtime, equal torch's
+float32 forward pass at sizes the trace never saw, darkness gate included; and its user errors."""
+import json
+
+import numpy as np
+import onnxruntime
+import pytest
+import torch
+from test_cli import run
+from test_user_errors_cli import refused
+
+from admc.model.inference import load_denoiser
+from admc.pipeline.train_stage import WEIGHTS_DIR
+
+FLOAT32_LOG_TOLERANCE = 1e-3
+"""ONNX Runtime sums each conv's n products in another order than torch: float32 rounding of at most
+n * 2^-24 relative per conv (n <= 144 = 9 x 16 in the small model: 8.6e-6), through its ~17 convs (head,
+4 blocks of 2, body, tail 2, encoder 5) on activations of magnitude <= ~10: 17 x 8.6e-6 x 10 = 1.5e-3 at
+worst, measured 1.4e-6. A wrong channel order, a missing gate or a size baked into the graph is O(1)."""
+
+
+def log_inputs(generator, height, width, seed=0):
+    """Random log-domain inputs with a black block far wider than the gate's radius (the gate's job)."""
+    rng = np.random.default_rng(seed)
+    noisy = rng.gamma(0.7, 0.8, size=(1, 3, height, width)).astype(np.float32)
+    noisy[..., 4:height - 3, 5:width // 2 + 20] = 0.0
+    inputs = {"noisy": noisy, "features": rng.random((1, 7, height, width), dtype=np.float32)}
+    if generator.config.refines:
+        inputs["base"] = rng.gamma(0.7, 0.8, size=(1, 3, height, width)).astype(np.float32)
+    return inputs
+
+
+@pytest.mark.parametrize("weights,base", [("admc-small-pretrained.pt", "noisy"), ("admc-small-refiner.pt", "oidn")])
+def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weights, base):
+    out = run("export", str(WEIGHTS_DIR / weights), "-o", str(tmp_path / "onnx"))
+    assert out.returncode == 0, out.stderr
+    manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
+    generators = load_denoiser(WEIGHTS_DIR / weights, dtype=torch.float32).generators
+    assert manifest["base"] == base and set(manifest["graphs"]) == set(generators) == {"diffuse", "specular"}
+    assert manifest["gate_radius"] == {b: g.gate_radius for b, g in generators.items()}
+    assert manifest["tile"]["halo"] == manifest["receptive_radius"] == 12  # 4 blocks: 1 + 8 + 1 + 2
+    assert manifest["inputs"]["features"][:3] == ["normal.X", "normal.Y", "normal.Z"]
+    for branch, generator in generators.items():
+        session = onnxruntime.InferenceSession(str(tmp_path / "onnx" / manifest["graphs"][branch]),
+                                               providers=["CPUExecutionProvider"])
+        assert [i.name for i in session.get_inputs()] == list(log_inputs(generator, 8, 8))
+        for height, width in ((45, 70), (13, 9)):  # the trace saw 8x8; 13x9 is narrower than the black block
+            inputs = log_inputs(generator, height, width)
+            with torch.no_grad():
+                expected = generator(*(torch.from_numpy(a) for a in inputs.values())).numpy()
+            got = session.run(None, inputs)[0]
+            assert got.shape == (1, 3, height, width)
+            assert np.abs(got - expected).max() <= FLOAT32_LOG_TOLERANCE, (branch, height, width)
+            if base == "noisy":  # where no light lies within the gate's radius, the output stays black
+                assert np.all(got[..., 4 + 12:height - 3 - 12, 5 + 12:width // 2 + 20 - 12] == 0)
+
+
+def test_export_needs_a_folder_and_real_weights(tmp_path):
+    afile = tmp_path / "taken"
+    afile.write_text("mine")
+    refused(run("export", str(WEIGHTS_DIR / "admc-small-pretrained.pt"), "-o", str(afile)),
+            f"{afile}: exists and is not a folder")
+    assert afile.read_text() == "mine"
+    notes = tmp_path / "notes.pt"
+    notes.write_text("not weights")
+    refused(run("export", str(notes), "-o", str(tmp_path / "out")), f"{notes}: not a readable torch file")
+    assert not (tmp_path / "out").exists()
