@@ -101,6 +101,12 @@ def test_table_cells_bold_notes_and_escaping():
     assert TABLE.markdown().splitlines()[3] == "|  | ours | **0.05** | **33.9** | **0.0079** |"
 
 
+def test_table1_comes_first_and_definitions_follow_the_plots(tmp_path):
+    page = _report(tmp_path, [_split_scene("s", 8, 8)]).read_text()
+    headings = [chunk.split("</h2>", 1)[0] for chunk in page.split("<h2>")[1:]]
+    assert headings == ["Table 1", "Plots", "Metrics", "Notes", "Images"]
+
+
 def test_bad_inputs_raise_clear_errors(tmp_path):
     item = _split_scene("s", 8, 8)
     item.outputs["ours"] = item.outputs["ours"][:4]

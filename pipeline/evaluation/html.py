@@ -63,8 +63,8 @@ class ReportGroup:
 
 def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions: dict[str, str],
                  plots: list[Path], groups: list[ReportGroup], device: str, notes: list[str] = ()) -> Path:
-    """Write out_dir/index.html (header, Table 1, plots, the `report_group` image comparisons with zoom)
-    and return its path."""
+    """Write out_dir/index.html and return its path. Table 1 and the plots come first (readers come for
+    them), then the metric definitions and notes, then the `report_group` image comparisons with zoom."""
     notes = list(notes) + [note for group in groups for note in group.notes]
     page = _template("report.html").format(
         title=_esc(title),
