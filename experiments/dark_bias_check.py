@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """What the diffuse network adds to its input, by irradiance level: where does an image get darker?
 
-    python scripts/dark_bias_check.py WEIGHTS RENDERS_DIR [--scenes studio-200000007 ...] [--spp 64]
+    python experiments/dark_bias_check.py WEIGHTS RENDERS_DIR [--scenes studio-200000007 ...] [--spp 64]
 
 For each scene folder of RENDERS_DIR (a run's `renders/`: spp*.exr and reference.exr), denoises the
 `--spp` render and bins the fully covered, lit pixels by the reference's irradiance in the network's own
@@ -10,8 +10,11 @@ correction (output - input), the output's and the input's mean signed and absolu
 reference, and the output's bias relative to the bin's mean. The networks predict an additive
 correction in that domain, so an error of the same absolute size at every level is a small fraction
 of a bright pixel and a large one of a deep shadow; and above log1p 3, where the training corpora have
-almost no pixels, the correction can exceed the input's own error (train.exposure_stops aims at that).
+almost no pixels, the correction can exceed the input's own error.
 Point it at scenes you do not test on.
+
+Backs: docs/results/2026-12-01-worse-than-input-cells.md (a log-domain offset of 5e-4 to 1e-3 at every
+level, a 32% darkening below an irradiance of 3e-3), which led to the dark pass.
 """
 import argparse
 from pathlib import Path

@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
 """How much does exposure normalisation (model/exposure.py) change a denoiser on dim and native images?
 
-    python scripts/exposure_check.py STORE RENDERS_DIR WEIGHTS [--split val] [--scales 1 0.25 0.0625]
+    python experiments/exposure_check.py STORE RENDERS_DIR WEIGHTS [--split val] [--scales 1 0.25 0.0625]
 
 Scales the noisy renders and references of STORE's `--split` scenes (never a test set: the answer
 decides what inference does) by each factor, an exact exposure change, and prints per spp and scale
 the denoiser's relMSE as a multiple of its input's, without and with the normalisation, and how
 often the normalisation is worse. Also prints the brightness percentiles that set TRAINED_BRIGHTNESS
 when pointed at a pretraining store with `--split train --scales 1`.
+
+Backs: docs/design-decisions.md, "Exposure normalisation" (at 1/16 exposure, 2.08x the input's relMSE
+at 64 spp without it, 0.36x with it; TRAINED_BRIGHTNESS = 0.21, the pretraining corpus's median).
 """
 import argparse
 from pathlib import Path

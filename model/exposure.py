@@ -3,7 +3,7 @@
 The networks see log1p(radiance). Above ~1 an exposure change only shifts the log values, but a dim
 image sits in log1p's near-linear range, where its noise is too small in absolute terms for the
 networks to tell from detail. Measured on the 32 val scenes of the pretraining corpus with the shipped
-weights (scripts/exposure_check.py), admc's relMSE as a multiple of its input's, at 4 / 64 spp: 0.12 / 0.35
+weights (experiments/exposure_check.py), admc's relMSE as a multiple of its input's, at 4 / 64 spp: 0.12 / 0.35
 at their own exposure, 0.29 / 2.08 at 1/16 of it (worse than the input); normalised, 0.12 / 0.33 and
 0.13 / 0.36, and worse than without (by more than 0.1%) on 1 of the 32 at their own exposure at 4 spp.
 Multiplying the radiance by a gain k >= 1 (a power of two) before the networks and dividing their

@@ -2,7 +2,7 @@
 
 OIDN runs once per branch, not once on the combined image: diffuse with albedo and normal as guides,
 specular alone (its reflections do not follow the first hit's albedo or normal). Measured on 20 scenes
-of the pretraining corpus (scripts/compare_oidn_bases.py): the sum of the two branch outputs had a lower
+of the pretraining corpus (experiments/compare_oidn_bases.py): the sum of the two branch outputs had a lower
 relMSE and 1-SSIM than OIDN on the combined image at 4, 16 and 64 spp (1-SSIM at 4 spp 0.0431 against
 0.0488), at about 1.9x the time, and each branch gets a base of its own signal.
 
