@@ -10,6 +10,16 @@ def variant() -> str:
     return use_variant("auto")
 
 
+@pytest.fixture(params=["float32", "bfloat16"])
+def inference_dtype(request):
+    """Both precisions the networks infer in, on every CPU: `auto` picks bf16 autocast where the CPU has
+    hardware bf16 (AVX512-BF16, AMX) and float32 elsewhere, so a test that took the default would
+    check another thing on each machine. bf16 autocast runs on any x86 CPU (emulated, slower)."""
+    from admc.model.precision import PRECISIONS
+
+    return PRECISIONS[request.param]
+
+
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread():
     """Tiny nets gain nothing from intra-op threads, and on a shared 2-core machine OpenMP's spinning

@@ -19,12 +19,13 @@ from admc.model.generator import Generator
 from admc.model.inference import FullImageDenoiser, load_denoiser
 from admc.model.tiling import receptive_radius
 from admc.model.settings import ModelSettings
-from admc.model.transforms import transform_spec
+from admc.model.transforms import diffuse_forward, specular_forward, transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
 from admc.pipeline.evaluation.evaluate import evaluate
 from admc.pipeline.evaluation.records import TestImage
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import read_image, write_exr
+from test_inference import log_tolerance
 
 TINY = ModelSettings(channels=8, blocks=1, cond_channels=8, encoder_channels=8, critic_channels=4)
 SHIPPED = Path(__file__).resolve().parents[1] / "weights" / "admc-small-pretrained.pt"
@@ -62,14 +63,14 @@ def extreme_cases(rng):
             "strip-37x4000": scene(37, 4000, rng, specular=False)}
 
 
-@pytest.fixture(scope="module")
-def model(tmp_path_factory):
+@pytest.fixture
+def model(tmp_path_factory, inference_dtype):
     torch.manual_seed(0)
     weights = tmp_path_factory.mktemp("w") / "tiny.pt"
     branches = {b: {"generator": Generator(TINY.generator_config()).state_dict(),
                     "critic": torch.nn.Linear(1, 1).state_dict()} for b in ("diffuse", "specular")}
     export_weights(weights, branches, {"model": dataclasses.asdict(TINY), "transform": transform_spec()})
-    return load_denoiser(weights, tile=64)
+    return load_denoiser(weights, tile=64, dtype=inference_dtype)
 
 
 def test_model_denoises_every_extreme_case_to_finite_values(model):
@@ -174,9 +175,9 @@ def dark_renders(variant):
     return {name: (_render(scene, 1, 1), _render(scene, 256, 2)) for name, scene in _dark_scenes(64).items()}
 
 
-@pytest.fixture(scope="module")
-def shipped():
-    return load_denoiser(SHIPPED)
+@pytest.fixture
+def shipped(inference_dtype):
+    return load_denoiser(SHIPPED, dtype=inference_dtype)
 
 
 def _unlit(color: np.ndarray, radius: int) -> np.ndarray:
@@ -199,7 +200,7 @@ def test_output_is_zero_where_nothing_is_lit_within_the_receptive_radius(shipped
     also without a coverage layer (a user's EXR), so the gate is what keeps it black there."""
     torch.manual_seed(0)
     paper_like = dataclasses.replace(TINY, input_skip=input_skip).generator_config()
-    models = [FullImageDenoiser(Generator(paper_like), Generator(paper_like))]
+    models = [FullImageDenoiser(Generator(paper_like), Generator(paper_like), dtype=shipped.dtype)]
     if input_skip:
         models.append(shipped)
     for name, (noisy, _) in dark_renders.items():
@@ -219,8 +220,9 @@ def test_border_rows_and_columns_match_the_interior_on_a_flat_input(shipped):
             "albedo": np.full((h, w, 3), 0.5, np.float32), "normal": np.tile(np.float32([0, 0, 1]), (h, w, 1)),
             "depth": np.full((h, w, 1), 2.0, np.float32), "coverage": np.ones((h, w, 1), np.float32)}
     result = shipped(flat)
-    for part in (result.diffuse, result.specular):
-        # Replicate padding feeds the border the values the interior sees, so every pixel sums the
-        # same float32 products; only their order may differ between oneDNN kernels (row ends), which
-        # moves O(0.1) outputs by ~1e-6 relative through 12 convs. The frame was 8-13 % off.
-        np.testing.assert_allclose(part, np.broadcast_to(part[h // 2, w // 2], part.shape), rtol=1e-4, atol=0)
+    # Replicate padding feeds the border the values the interior sees, so every pixel sums the same
+    # products; only their order may differ between oneDNN kernels (row ends): test_inference.log_tolerance,
+    # in the networks' log domain. The frame was 8-13 % off.
+    for part in (diffuse_forward(result.diffuse, flat["albedo"]), specular_forward(result.specular)):
+        centre = part[h // 2, w // 2]
+        assert np.abs(part - centre).max() <= log_tolerance(shipped.dtype, np.abs(centre).max())
