@@ -15,7 +15,7 @@ object) sit in log1p's linear range too, where the networks' small absolute erro
 a large relative one. So a second pass denoises the dark region again at DARK_GAIN times the exposure
 (inference.dark_region), and dark_weights() takes each pixel from it by how dark the first pass found
 it. Measured with the shipped weights, ensemble 4, as multiples of one pass, at 4 / 16 / 64 spp
-(README: Dark regions).
+(docs/design-decisions.md, "Dark pass").
 """
 from __future__ import annotations
 

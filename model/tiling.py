@@ -20,7 +20,7 @@ from .generator import Generator
 CPU_TILE = 320
 """A CPU's default tile core edge: small enough that a tile's activations stay in the last-level cache. On
 the 2-core EPYC (32 MB L3) the small model's network time for 1280x720 was 2.4-2.5 s in tiles of 320-384
-against 2.9 s in tiles of 512 (README: Benchmarks)."""
+against 2.9 s in tiles of 512 (docs/benchmarks.md)."""
 GPU_TILE = 512
 """A GPU's: it has no cache cliff at these sizes, and a larger tile repeats fewer halo pixels."""
 HALOS_PER_TILE = 8

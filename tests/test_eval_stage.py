@@ -89,7 +89,7 @@ def test_cli_eval_prints_table_and_report_path(tmp_path, variant):
 
 
 def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
-    """The README's recipe: a folder of the user's scenes as the whole test set, at each file's film size."""
+    """The recipe of docs/usage.md: a folder of the user's scenes as the whole test set, at each file's film size."""
     from test_scenes import write_kitchen_scene
 
     scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
