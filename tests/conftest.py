@@ -1,7 +1,20 @@
 """Shared fixtures. Tests render with the best JIT variant this machine has (llvm_ad_rgb on CI)."""
+from collections import defaultdict
+
 import pytest
 
 from admc.pipeline.render.variants import use_variant
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line per reason some tests did not run, naming them: a `make test` that passes without its
+    browser (or GPU) tests says so, instead of a bare "3 skipped"."""
+    skipped = defaultdict(list)
+    for report in terminalreporter.stats.get("skipped", []):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        skipped[reason.removeprefix("Skipped: ")].append(report.nodeid.rpartition("::")[2])
+    for reason, names in skipped.items():
+        terminalreporter.write_line(f"skipped {len(names)} ({', '.join(names)}): {reason}")
 
 
 @pytest.fixture(scope="session")

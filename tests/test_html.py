@@ -12,6 +12,7 @@ import os
 import select
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -28,8 +29,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed "
-                                    "(apt-get install -y chromium chromium-driver; CI does)")
+needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="the browser tests need Chromium "
+                                    "(apt-get install -y chromium, as .ci/run does)")
 
 TABLE = Table1(head=["spp", "denoiser", "1-SSIM", "PSNR", "relMSE"],
                rows=[[Cell("4"), Cell("noisy"), Cell("0.41"), Cell("21.3"), Cell("0.0975")],
@@ -380,3 +381,15 @@ def test_harness_catches_page_errors_and_undecodable_images(tmp_path, browser):
     assert "console: boom" in errors
     assert any(e.startswith("exception: ReferenceError: undefinedFunction is not defined") for e in errors)
     assert "console: 1 of 8 images failed to decode" in errors
+
+
+def test_a_run_without_chromium_names_the_skipped_browser_tests_in_one_line(tmp_path):
+    """`make test` on a machine without Chromium passes, and says which tests it did not run and why."""
+    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                          f"{__file__}::test_report_loads_decodes_every_image_without_errors_or_network",
+                          f"{__file__}::test_harness_catches_page_errors_and_undecodable_images"],
+                         env=dict(os.environ, PATH=str(tmp_path)), capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert ("skipped 2 (test_report_loads_decodes_every_image_without_errors_or_network, "
+            "test_harness_catches_page_errors_and_undecodable_images): the browser tests need Chromium "
+            "(apt-get install -y chromium, as .ci/run does)") in out.stdout.splitlines(), out.stdout
