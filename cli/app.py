@@ -56,6 +56,8 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
 
     cfg = _load(config, set_, scheduler)
     result = render_corpus(cfg)
+    for note in result.notes:
+        console.print(note, markup=False)
     table = Table(title=f"rendered {len(result.sidecars)} images of {len(result.scenes)} scenes")
     for column in ("scene", "spp", "specular", "seconds", "Msamples/s", "non-finite"):
         table.add_column(column)

@@ -13,7 +13,7 @@ from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import stage as render
-from admc.pipeline.render.scenes import SceneError, SceneSpec
+from admc.pipeline.render.scenes import NotAScene, SceneError, SceneSpec
 from admc.stores import patches
 from admc.stores.atomic import read_json
 
@@ -41,11 +41,13 @@ class StageResult:
     cached: int
     tasks: list[Task]              # every task of the run, upstream included (for their manifests)
     retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
+    skipped: list[str] = field(default_factory=list)  # files in the scene folders that are no scene, and why
 
     @property
     def notes(self) -> list[str]:
         """What the user should hear about besides the counts."""
-        return [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
+        retiled = [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
+        return self.skipped + retiled
 
 
 def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
@@ -76,13 +78,19 @@ def _run_corpus(cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Tas
     done = {scene_id: levels for scene_id, levels in renders.items() if all(map(cache.is_done, levels.values()))}
     paths = {task.key: cache.path(task) for levels in done.values() for task in levels.values()}
     renders_dir = render.link_renders(done, paths, Path(cfg.run.workdir) / "renders")
-    if failure is None and not left_out:
+    broken = [error for error in left_out if not isinstance(error, NotAScene)]
+    if failure is None and not broken:
         return published, cached, renders_dir
     report = [str(failure)] if failure is not None else []
-    if left_out:
-        report += [f"{len(left_out)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
-                   *(f"  {error}" for error in left_out)]
+    if broken:
+        report += [f"{len(broken)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
+                   *(f"  {error}" for error in broken)]
+    report += [str(error) for error in left_out if isinstance(error, NotAScene)]
     raise StageError("\n".join(report)) from failure
+
+
+def _skipped(left_out: list[SceneError]) -> list[str]:
+    return [str(error) for error in left_out if isinstance(error, NotAScene)]
 
 
 def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | None = None) -> StageResult:
@@ -95,7 +103,7 @@ def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | N
     tasks = [t for levels in renders.values() for t in levels.values()]
     published, cached, renders_dir = _run_corpus(cfg, tasks, renders, left_out, progress)
     return StageResult(specs, _sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached,
-                       tasks)
+                       tasks, skipped=_skipped(left_out))
 
 
 def store_attributes(cfg: Config) -> dict:
@@ -145,7 +153,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
     return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,
-                       len(everything) - cached, cached, everything, retiled)
+                       len(everything) - cached, cached, everything, retiled, _skipped(left_out))
 
 
 def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) -> bool:

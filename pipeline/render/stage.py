@@ -65,7 +65,7 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
     spec = SceneSpec(**{**scene, "resolution": tuple(scene["resolution"])})
     active = use_variant(variant)
     integrator.register()
-    loaded = scenes.load_scene(spec)
+    loaded = scenes.load_scene(spec, spp)
     needs = scenes.analyse(loaded)
     start = time.perf_counter()
     # A 1-spp warm-up compiles the JIT kernels, so render_seconds measures sampling alone: the

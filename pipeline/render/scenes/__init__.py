@@ -7,11 +7,12 @@ process: `load_scene(spec)` builds the Mitsuba scene, `scene_hash(spec)` keys ca
 from .analysis import SceneNeeds, analyse
 from .families import FAMILIES, procedural_corpus
 from .loading import load_scene, scene_description, scene_hash
-from .spec import SceneError, SceneSpec
+from .spec import NotAScene, SceneError, SceneSpec
 from .xml_loader import xml_corpus
 
 __all__ = [
     "FAMILIES",
+    "NotAScene",
     "SceneError",
     "SceneNeeds",
     "SceneSpec",

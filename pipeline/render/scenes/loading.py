@@ -65,14 +65,15 @@ def scene_description(spec: SceneSpec) -> dict:
     return _to_mitsuba(plain_description(spec))
 
 
-def load_scene(spec: SceneSpec):
-    """The Mitsuba scene of any spec, film = hdrfilm with a box filter at spec.resolution.
+def load_scene(spec: SceneSpec, spp: int = 1):
+    """The Mitsuba scene of any spec, film = hdrfilm with a box filter at spec.resolution; an XML
+    scene that takes $spp gets `spp` (pass the spp rendered; the render's own spp rules the sampler).
 
     Loaded with `optimize=False`: Mitsuba's shape merging orders shapes and emitters by memory
     address, so the same spec would render differently (same statistics, other bits) per load.
     """
     if spec.is_xml:
-        return xml_loader.load_xml_scene(spec.xml_path, spec.resolution)
+        return xml_loader.load_xml_scene(spec.xml_path, spec.resolution, spp)
     import mitsuba as mi
 
     try:

@@ -16,6 +16,11 @@ class SceneError(AdmcError, ValueError):
     """A scene cannot be described or loaded; the message names the file or spec and the problem."""
 
 
+class NotAScene(SceneError):
+    """An .xml file in a scene folder that is no scene of its own (a part other scenes include, a file
+    without a camera): left out and named, never a failure."""
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     scene_id: str

@@ -1,23 +1,29 @@
 """User Mitsuba XML scenes: discovery, loading with our film, and the bytes that identify them.
 
 A user's file may carry any film, reconstruction filter or integrator. We parse it with
-ElementTree, swap every sensor's film for an `hdrfilm` with a `box` filter (a Gaussian splats
+ElementTree, inline its <include>d files (published scenes often keep the camera and lights in a
+shared include), swap every sensor's film for an `hdrfilm` with a `box` filter (a Gaussian splats
 samples across pixels, which denoisers handle badly), rewrite referenced file names to absolute
-paths and load the result with `mi.load_string`. Referenced files are found the way Mitsuba's
-own parser finds them (its file resolver, the scene's <path> folders included) and checked up
-front, so a missing mesh is reported by name instead of as a parser error deep inside Mitsuba,
-and the scene hash covers exactly the files Mitsuba loads.
+paths and load the result with `mi.load_string`, passing the parameters `mitsuba -D` would
+(SCENE_PARAMETERS). Referenced files are found the way Mitsuba's own parser finds them (its file
+resolver, the scene's <path> folders included) and checked up front, so a missing mesh is reported
+by name instead of as a parser error deep inside Mitsuba, and the scene hash covers exactly the
+files Mitsuba loads.
 """
 from __future__ import annotations
 
+import copy
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
-from .spec import XML_FAMILY, SceneError, SceneSpec
+from .spec import XML_FAMILY, NotAScene, SceneError, SceneSpec
 
 DEFAULT_RESOLUTION = (768, 576)  # Mitsuba's hdrfilm default, used when the XML gives none
+SCENE_PARAMETERS = ("spp", "resx", "resy")
+"""What published scenes take from `mitsuba -D name=value`: admc passes the spp it renders and the film
+size to a scene that uses them (Mitsuba refuses a parameter a scene does not use)."""
 _REFERENCE = re.compile(r"\$(\w+)")
 _MITSUBA_SOURCE = re.compile(r"\[[\w.]+:\d+\] ")  # where in Mitsuba's C++ an error was raised
 _AT_STRING = re.compile(r"At string \(line (\d+), col (\d+)\): ")  # where in the rewritten XML we loaded
@@ -33,7 +39,8 @@ def _parse(path: Path) -> ET.Element:
 
 
 def _defaults(root: ET.Element) -> dict[str, str]:
-    return {d.get("name"): d.get("value", "") for d in root.iter("default") if d.get("name")}
+    """A name's first <default> wins, as in Mitsuba's parser (an including file's, before its includes')."""
+    return {d.get("name"): d.get("value", "") for d in reversed(list(root.iter("default"))) if d.get("name")}
 
 
 def _substitute(text: str, defaults: dict[str, str], path: Path) -> str:
@@ -55,9 +62,9 @@ def _sensors(root: ET.Element, path: Path) -> list[ET.Element]:
 
 
 def xml_resolution(path: str | Path) -> tuple[int, int]:
-    """The film size the XML itself asks for (first sensor), Mitsuba's default if it gives none."""
+    """The film size the XML itself asks for (first sensor, includes read), Mitsuba's default if it gives none."""
     path = Path(path)
-    root = _parse(path)
+    root = _expanded(path)
     defaults = _defaults(root)
     film = _sensors(root, path)[0].find("film")
     size = list(DEFAULT_RESOLUTION)
@@ -80,8 +87,9 @@ class _Reference:
     owner: Path    # the XML file that names it
 
 
-def _references(path: Path, root: ET.Element) -> list[_Reference]:
-    """Every file and <path> folder the scene references, through includes, found as Mitsuba 3.9's parser does.
+def _references(path: Path, root: ET.Element, trees: dict[Path, ET.Element] | None = None) -> list[_Reference]:
+    """Every file and <path> folder the scene references, through includes, found as Mitsuba 3.9's parser does;
+    `trees` receives each included file's parsed root, by its absolute path.
 
     The parser gives each XML file a copy of the global file resolver with the file's folder in
     front; a <path> (relative: found on that search path) goes in front of that. <include> and
@@ -91,13 +99,13 @@ def _references(path: Path, root: ET.Element) -> list[_Reference]:
     import mitsuba as mi
 
     strings: list[tuple[ET.Element, str, Path]] = []
-    resolver, found = _parsed_references(path, root, mi.file_resolver(), {}, strings, set())
+    resolver, found = _parsed_references(path, root, mi.file_resolver(), {}, strings, {} if trees is None else trees)
     return found + [_Reference(element, "value", name, _resolve(resolver, name, owner), owner)
                     for element, name, owner in strings]
 
 
 def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str, str],
-                       strings: list, seen: set[Path]) -> tuple[object, list[_Reference]]:
+                       strings: list, trees: dict[Path, ET.Element]) -> tuple[object, list[_Reference]]:
     """One file's parse-time references (and its includes'); its `filename` strings go to `strings`.
 
     Returns the file's search path at its end, with the references in document order.
@@ -124,10 +132,10 @@ def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str,
             name = _substitute(element.get("filename", ""), defaults, path)
             reference = _Reference(element, "filename", name, _resolve(resolver, name, path), path)
             found.append(reference)
-            if element.tag == "include" and reference.target not in seen:
-                seen.add(reference.target)
-                found += _parsed_references(reference.target, _parse(reference.target), resolver, defaults,
-                                            strings, seen)[1]
+            if element.tag == "include" and reference.target not in trees:
+                trees[reference.target] = _parse(reference.target)
+                found += _parsed_references(reference.target, trees[reference.target], resolver, defaults,
+                                            strings, trees)[1]
     return resolver, found
 
 
@@ -155,15 +163,55 @@ def _hdr_film(width: int, height: int) -> ET.Element:
     return film
 
 
-def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
-    """The scene's XML with our film in every sensor and absolute file names."""
-    path = Path(path)
+def _expanded(path: Path, trees: dict[Path, ET.Element] | None = None) -> ET.Element:
+    """The scene as Mitsuba reads it, as one tree: each <include> replaced by the included file's
+    contents, and every file name absolute (found where Mitsuba's parser finds it). `trees` receives
+    the included files' own trees, by absolute path."""
     root = _parse(path)
+    trees = {} if trees is None else trees
+    for reference in _references(path, root, trees):
+        reference.element.set(reference.attribute, str(reference.target))
+    _inline(root, trees, [path.resolve()])
+    return root
+
+
+def _inline(element: ET.Element, trees: dict[Path, ET.Element], chain: list[Path]) -> None:
+    for index in reversed(range(len(element))):
+        child = element[index]
+        if child.tag != "include":
+            _inline(child, trees, chain)
+            continue
+        target = Path(child.get("filename"))
+        if target in chain:
+            raise SceneError(f"{chain[0]}: {target} includes itself ({' -> '.join(p.name for p in chain + [target])})")
+        included = copy.deepcopy(trees[target])  # a file included twice is inlined twice
+        _inline(included, trees, chain + [target])
+        element[index:index + 1] = list(included)
+
+
+def _check_parameters(path: Path, root: ET.Element) -> None:
+    """Every $name the expanded scene uses has a <default> or is one admc passes (SCENE_PARAMETERS)."""
+    defined = set(_defaults(root)) | set(SCENE_PARAMETERS)
+    for element in root.iter():
+        for value in element.attrib.values():
+            for name in _REFERENCE.findall(value):
+                if name not in defined:
+                    raise SceneError(f"{path}: ${name} is used but has no <default> (admc passes only "
+                                     f"{', '.join('$' + p for p in SCENE_PARAMETERS)}, as `mitsuba -D` would)")
+
+
+def _parameters(text: str, resolution: tuple[int, int], spp: int) -> dict[str, str]:
+    """The SCENE_PARAMETERS the scene uses, with the values of this render."""
+    values = {"spp": spp, "resx": resolution[0], "resy": resolution[1]}
+    return {name: str(values[name]) for name in sorted(set(_REFERENCE.findall(text)) & set(SCENE_PARAMETERS))}
+
+
+def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
+    """The scene's XML, includes inlined, with our film in every sensor and absolute file names."""
+    path = Path(path)
+    root = _expanded(path)
     sensors = _sensors(root, path)
     width, height = resolution if resolution is not None else xml_resolution(path)
-    for reference in _references(path, root):
-        if reference.owner == path:  # included files keep theirs; Mitsuba finds them the same way
-            reference.element.set(reference.attribute, str(reference.target))
     for sensor in sensors:
         for film in sensor.findall("film"):
             sensor.remove(film)
@@ -171,21 +219,23 @@ def prepared_xml(path: str | Path, resolution: tuple[int, int] | None) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None):
-    """Load a user scene with an hdrfilm + box filter at `resolution` (None keeps the XML's).
+def load_xml_scene(path: str | Path, resolution: tuple[int, int] | None = None, spp: int = 1):
+    """Load a user scene with an hdrfilm + box filter at `resolution` (None keeps the XML's); a scene
+    that takes $spp, $resx or $resy gets `spp` and the film size (the render's own spp overrides the
+    scene's sampler anyway).
 
-    Our own file names are absolute; included files keep theirs, which Mitsuba resolves on the
-    scene's search path (its folder first, as `mi.load_file` would), so the scene's folder is put on
-    Mitsuba's (process-wide) file resolver for the duration of the load.
+    File names are absolute; the scene's folder is put on Mitsuba's (process-wide) file resolver for
+    the duration of the load all the same, as `mi.load_file` would.
     """
     import mitsuba as mi
 
     path = Path(path).resolve()
-    text = prepared_xml(path, resolution)
+    size = resolution if resolution is not None else xml_resolution(path)
+    text = prepared_xml(path, size)
     saved = mi.FileResolver(mi.file_resolver())
     mi.file_resolver().prepend(str(path.parent))
-    try:
-        return mi.load_string(text, optimize=False)  # merging reorders shapes per load (see loading.py)
+    try:  # merging reorders shapes per load (see loading.py)
+        return mi.load_string(text, optimize=False, **_parameters(text, size, spp))
     except RuntimeError as error:
         problem = _AT_STRING.sub(lambda match: _element_at(text, match), _MITSUBA_SOURCE.sub("", str(error)))
         raise SceneError(f"{path}: Mitsuba could not load the scene: {problem}") from error
@@ -213,7 +263,6 @@ def xml_content_bytes(path: str | Path, resolution: tuple[int, int] | None) -> b
     """The XML bytes, the name and bytes of each file Mitsuba will load for it, and the film size."""
     path = Path(path).resolve()
     root = _parse(path)
-    _sensors(root, path)
     size = resolution if resolution is not None else xml_resolution(path)
     parts = [b"xml;%d;" % path.stat().st_size, path.read_bytes()]
     for reference in _references(path, root):
@@ -230,20 +279,19 @@ def _scene_id(name: str) -> str:
     return "xml-" + (re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "scene")
 
 
-def _is_scene_file(path: Path) -> bool:
-    root = _parse(path)
-    return root.tag == "scene" and next(root.iter("sensor"), None) is not None
-
-
 def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
                left_out: list[SceneError] | None = None) -> list[SceneSpec]:
     """One spec per XML scene in each folder: `*.xml` in the folder and in its direct subfolders.
 
-    A file counts as a scene when its root is <scene> and it has a <sensor>; fragments pulled in
-    by <include> have none and are skipped. A subfolder holding one scene is named after the folder.
-    Each scene is checked as far as its render would check it (XML, film size, every referenced
-    file). A file that fails raises its SceneError or, when `left_out` is a list, is left out and
-    its error appended there: one broken file then does not hold up the other scenes.
+    What is a scene is decided as Mitsuba reads the file, includes inlined: a <scene> with a <sensor>,
+    in it or in a file it includes. A file another file of the folder includes is a part of those
+    scenes, not a scene of its own; it and the files without a camera are left out as NotAScene. A
+    subfolder holding one scene is named after the folder. Each scene is checked as far as its
+    render would check it (XML, film size, every referenced file, its $parameters) and must hold an
+    emitter: an unlit scene renders black, training data of nothing. A file that fails raises its
+    SceneError or, when `left_out` is a list, is left out and its error appended there (so are the
+    NotAScene files, which are otherwise just skipped): one broken file then does not hold up the
+    other scenes.
     """
     specs: dict[str, SceneSpec] = {}
     problems: list[SceneError] = []
@@ -251,8 +299,9 @@ def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
         if not folder.is_dir():
             raise SceneError(f"{folder}: scene folder not found")
         found, broken = _scene_files(folder)
-        if not found and not broken:
-            raise SceneError(f"{folder}: no Mitsuba scene (an .xml file with a <sensor>) in this folder or its subfolders")
+        if not found and not any(not isinstance(error, NotAScene) for error in broken):
+            raise SceneError(f"{folder}: no Mitsuba scene (an .xml file with a <sensor>) in this folder or its "
+                             f"subfolders{''.join('; ' + str(error) for error in broken)}")
         problems += broken
         for name, path in found:
             scene_id = _scene_id(name)
@@ -262,36 +311,59 @@ def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
                 specs[scene_id] = _checked_spec(scene_id, path, resolution)
             except SceneError as error:
                 problems.append(error)
-    if problems:
-        if left_out is None:
-            raise problems[0]
+    if left_out is not None:
         left_out.extend(problems)
+    else:
+        errors = [error for error in problems if not isinstance(error, NotAScene)]
+        if errors:
+            raise errors[0]
     return list(specs.values())
 
 
 def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]]:
-    """(name, path) of the scenes in a folder and its direct subfolders, and the files that do not parse."""
-    broken: list[SceneError] = []
-
-    def scenes_in(where: Path) -> list[Path]:
-        scenes = []
-        for path in sorted(where.glob("*.xml")):
-            try:
-                if _is_scene_file(path):
-                    scenes.append(path)
-            except SceneError as error:
-                broken.append(error)
-        return scenes
-
-    found = [(path.stem, path) for path in scenes_in(folder)]
-    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
-        scenes = scenes_in(sub)
-        found += [(sub.name if len(scenes) == 1 else f"{sub.name}-{path.stem}", path) for path in scenes]
-    return found, broken
+    """(name, path) of the scenes in a folder and its direct subfolders, and the files left out:
+    those that do not parse (SceneError) and those that are no scene of their own (NotAScene)."""
+    left_out: list[SceneError] = []
+    candidates: dict[Path, ET.Element] = {}  # the <scene> files, expanded
+    includers: dict[Path, list[Path]] = {}   # an included file -> the files including it
+    places = [folder] + sorted(p for p in folder.iterdir() if p.is_dir())
+    for path in (path for where in places for path in sorted(where.glob("*.xml"))):
+        try:
+            root = _parse(path)
+            if root.tag != "scene":
+                left_out.append(NotAScene(f"{path}: skipped, not a Mitsuba scene (its root element is <{root.tag}>)"))
+                continue
+            trees: dict[Path, ET.Element] = {}
+            candidates[path] = _expanded(path, trees)
+        except SceneError as error:
+            left_out.append(error)
+            continue
+        for included in trees:
+            includers.setdefault(included, []).append(path)
+    scenes: dict[Path, list[Path]] = {where: [] for where in places}
+    for path, root in candidates.items():
+        if path.resolve() in includers:
+            by = includers[path.resolve()]
+            names = ", ".join(p.name for p in by[:3]) + (f" and {len(by) - 3} more" if len(by) > 3 else "")
+            left_out.append(NotAScene(f"{path}: skipped, a part of other scenes, not a scene of its own "
+                                      f"(included by {names})"))
+        elif next(root.iter("sensor"), None) is None:
+            left_out.append(NotAScene(f"{path}: skipped, no <sensor> (camera) in it or in the files it includes"))
+        else:
+            scenes[path.parent].append(path)
+    found = [(path.stem, path) for path in scenes[folder]]
+    for sub in places[1:]:
+        found += [(sub.name if len(scenes[sub]) == 1 else f"{sub.name}-{path.stem}", path) for path in scenes[sub]]
+    return found, left_out
 
 
 def _checked_spec(scene_id: str, path: Path, resolution: tuple[int, int] | None) -> SceneSpec:
-    """A scene file's spec, once its film size reads and every file it references is found."""
+    """A scene file's spec, once its film size reads, every file it references is found, every
+    $parameter it uses is defined, and it holds an emitter."""
     size = tuple(resolution) if resolution is not None else xml_resolution(path)
-    _references(path, _parse(path))
+    root = _expanded(path)
+    _check_parameters(path, root)
+    if next(root.iter("emitter"), None) is None:
+        raise SceneError(f"{path}: no <emitter> (no light, no environment) in it or in the files it includes: "
+                         "it would render black; add a light or move the file out of the scene folder")
     return SceneSpec(scene_id, XML_FAMILY, 0, size, str(path.resolve()))
