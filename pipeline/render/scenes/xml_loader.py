@@ -322,22 +322,30 @@ def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
 
 def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]]:
     """(name, path) of the scenes in a folder and its direct subfolders, and the files left out:
-    those that do not parse (SceneError) and those that are no scene of their own (NotAScene)."""
+    those that do not load (SceneError) and those that are no scene of their own (NotAScene).
+
+    A part is read as the files including it read it (its file names on their search path), so on
+    its own it may not load: that is no error of a part, nor of a file that could never be a scene
+    (neither a <sensor> nor an <include> in it)."""
     left_out: list[SceneError] = []
-    candidates: dict[Path, ET.Element] = {}  # the <scene> files, expanded
-    includers: dict[Path, list[Path]] = {}   # an included file -> the files including it
+    candidates: dict[Path, ET.Element | SceneError] = {}  # the <scene> files, expanded or why not
+    includers: dict[Path, list[Path]] = {}  # an included file -> the files including it
     places = [folder] + sorted(p for p in folder.iterdir() if p.is_dir())
     for path in (path for where in places for path in sorted(where.glob("*.xml"))):
         try:
             root = _parse(path)
-            if root.tag != "scene":
-                left_out.append(NotAScene(f"{path}: skipped, not a Mitsuba scene (its root element is <{root.tag}>)"))
-                continue
-            trees: dict[Path, ET.Element] = {}
-            candidates[path] = _expanded(path, trees)
         except SceneError as error:
             left_out.append(error)
             continue
+        if root.tag != "scene":
+            left_out.append(NotAScene(f"{path}: skipped, not a Mitsuba scene (its root element is <{root.tag}>)"))
+            continue
+        trees: dict[Path, ET.Element] = {}
+        try:
+            candidates[path] = _expanded(path, trees)
+        except SceneError as error:
+            whole = next(root.iter("sensor"), None) is not None or next(root.iter("include"), None) is not None
+            candidates[path] = error if whole else root
         for included in trees:
             includers.setdefault(included, []).append(path)
     scenes: dict[Path, list[Path]] = {where: [] for where in places}
@@ -347,6 +355,8 @@ def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]
             names = ", ".join(p.name for p in by[:3]) + (f" and {len(by) - 3} more" if len(by) > 3 else "")
             left_out.append(NotAScene(f"{path}: skipped, a part of other scenes, not a scene of its own "
                                       f"(included by {names})"))
+        elif isinstance(root, SceneError):
+            left_out.append(root)
         elif next(root.iter("sensor"), None) is None:
             left_out.append(NotAScene(f"{path}: skipped, no <sensor> (camera) in it or in the files it includes"))
         else:
