@@ -5,14 +5,14 @@ import pytest
 import torch
 from torch import nn
 
-from test_inference import LOG_TOLERANCE, render_layers, strong_generator
+from test_inference import log_tolerance, render_layers, strong_generator
 from test_unet import strong_unet
 from admc.model.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
 from admc.model.inference import FullImageDenoiser, dark_region
-from admc.model.transforms import RADIANCE_MAX
+from admc.model.transforms import RADIANCE_MAX, diffuse_forward, specular_forward
 
-def denoiser(normalize: bool, dark_pass: bool = True) -> FullImageDenoiser:
-    return FullImageDenoiser(strong_generator(1), strong_generator(2), dtype=torch.float32,
+def denoiser(normalize: bool, dtype: torch.dtype, dark_pass: bool = True) -> FullImageDenoiser:
+    return FullImageDenoiser(strong_generator(1), strong_generator(2), dtype=dtype,
                              normalize_exposure=normalize, dark_pass=dark_pass)
 
 
@@ -38,10 +38,10 @@ def test_only_dim_images_get_a_gain_and_never_past_the_radiance_limit():
     assert exposure_gain(dim) == 4.0
 
 
-def test_a_dim_image_denoises_the_same_at_any_exposure():
+def test_a_dim_image_denoises_the_same_at_any_exposure(inference_dtype):
     layers = scaled(render_layers(24, 20, seed=3), 0.01)
     assert brightness(layers["diffuse"] + layers["specular"]) < TRAINED_BRIGHTNESS / 8
-    normalized, plain = denoiser(True), denoiser(False)
+    normalized, plain = denoiser(True, inference_dtype), denoiser(False, inference_dtype)
     once, darker = normalized(layers), normalized(scaled(layers, 1 / 8))
     assert once.exposure_gain > 1 and darker.exposure_gain == 8 * once.exposure_gain
     np.testing.assert_array_equal(darker.image * 8, once.image)  # powers of two: the very same values
@@ -50,14 +50,15 @@ def test_a_dim_image_denoises_the_same_at_any_exposure():
     assert not np.allclose(darker.image * 8, once.image, rtol=1e-2, atol=0)
 
 
-def test_bright_images_and_environment_pixels_are_untouched():
+def test_bright_images_and_environment_pixels_are_untouched(inference_dtype):
     layers = render_layers(16, 16, seed=4)
     assert brightness(layers["diffuse"] + layers["specular"]) > TRAINED_BRIGHTNESS
-    np.testing.assert_array_equal(denoiser(True)(layers).image, denoiser(False)(layers).image)
+    np.testing.assert_array_equal(denoiser(True, inference_dtype)(layers).image,
+                                  denoiser(False, inference_dtype)(layers).image)
     dim = scaled(layers, 0.001)
     dim["coverage"] = np.ones((16, 16, 1), np.float32)
     dim["coverage"][:, :5] = 0.0  # environment: passed through, whatever the gain
-    result = denoiser(True)(dim)
+    result = denoiser(True, inference_dtype)(dim)
     assert result.exposure_gain > 1
     np.testing.assert_allclose(result.image[:, :5], (dim["diffuse"] + dim["specular"])[:, :5], rtol=1e-5)
 
@@ -81,6 +82,7 @@ class LogOffset(nn.Module):
 
 
 def offset_denoiser(dark_pass: bool) -> FullImageDenoiser:
+    """float32: an addition runs in float32 under autocast too (only convs and matmuls go to bf16)."""
     return FullImageDenoiser(LogOffset(), LogOffset(), overlap=0, dtype=torch.float32, normalize_exposure=False,
                              dark_pass=dark_pass)
 
@@ -110,7 +112,7 @@ def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
 
 
 @pytest.mark.parametrize("backbone", ["residual", "unet"])
-def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pass(backbone):
+def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pass(backbone, inference_dtype):
     """A dark corner: the second pass runs on its bounding box plus the networks' halo (in tiles, at that;
     for the multi-scale body starting on its coarse grid), and the result equals blending a whole-image
     pass at DARK_GAIN x the exposure."""
@@ -125,7 +127,7 @@ def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pas
 
     def make(dark_pass: bool) -> FullImageDenoiser:
         return FullImageDenoiser(generator(1), generator(2), tile=16 if backbone == "residual" else 32,
-                                 dtype=torch.float32, normalize_exposure=False, dark_pass=dark_pass)
+                                 dtype=inference_dtype, normalize_exposure=False, dark_pass=dark_pass)
 
     twice, once = make(True)(layers), make(False)(layers)
     brighter = make(False)(scaled(layers, DARK_GAIN))  # the whole image at the second pass's exposure
@@ -133,13 +135,15 @@ def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pas
     rows, cols = dark_region(weights, make(True).overlap, make(True).alignment)
     assert 0 < rows.start < top and rows.stop == height and 0 < cols.start < left and cols.stop == width
     assert not weights[:rows.start].any() and not weights[:, :cols.start].any()
-    for branch in ("diffuse", "specular"):
+    albedo = layers["albedo"]
+    for branch, forward in (("diffuse", lambda x: diffuse_forward(x, albedo)), ("specular", specular_forward)):
         first, second = getattr(once, branch), getattr(brighter, branch) / DARK_GAIN
         expected = first + weights * (second - first)
-        # crops and tiles differ by LOG_TOLERANCE in the log domain; back in linear units at 1/DARK_GAIN
-        # that is up to LOG_TOLERANCE * (v + (albedo + eps) / DARK_GAIN) on a value v
-        np.testing.assert_allclose(getattr(twice, branch), expected, rtol=2 * LOG_TOLERANCE,
-                                   atol=2 * LOG_TOLERANCE / DARK_GAIN)
+        # crops and tiles differ by log_tolerance in the log domain; back in linear units at 1/DARK_GAIN
+        # that is up to tolerance * (v + (albedo + eps) / DARK_GAIN) on a value v
+        magnitude = max(np.abs(forward(getattr(run, branch))).max() for run in (once, brighter))
+        tolerance = log_tolerance(inference_dtype, magnitude)
+        np.testing.assert_allclose(getattr(twice, branch), expected, rtol=2 * tolerance, atol=2 * tolerance / DARK_GAIN)
     corner = np.abs(twice.image - once.image)[top:, left:] / (np.abs(once.image[top:, left:]) + 1e-3)
     assert float(corner.max()) > 1e-2  # the check can fail: the second pass changed the corner
 
