@@ -151,3 +151,13 @@ def test_the_cli_renders_a_published_folder_and_names_every_file_it_left_out(tmp
     assert out.returncode == 0, out.stdout + out.stderr
     assert f"{folder / 'common.xml'}: skipped, a part of other scenes, not a scene of its own" in out.stdout
     assert "0 rendered now, 6 cached" in out.stdout
+
+
+def test_includes_that_form_a_cycle_are_named(tmp_path):
+    (tmp_path / "a.xml").write_text('<scene version="3.0.0"><include filename="b.xml"/><sensor type="perspective"/>'
+                                    '<emitter type="constant"/></scene>')
+    (tmp_path / "b.xml").write_text('<scene version="3.0.0"><include filename="a.xml"/></scene>')
+    left_out: list[SceneError] = []
+    assert xml_corpus([str(tmp_path)], (32, 32), left_out) == []
+    assert list(map(str, left_out)) == [f"{tmp_path / 'a.xml'}: its includes form a cycle (a.xml -> b.xml -> a.xml)",
+                                        f"{tmp_path / 'b.xml'}: its includes form a cycle (b.xml -> a.xml -> b.xml)"]

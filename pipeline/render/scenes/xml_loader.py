@@ -183,7 +183,7 @@ def _inline(element: ET.Element, trees: dict[Path, ET.Element], chain: list[Path
             continue
         target = Path(child.get("filename"))
         if target in chain:
-            raise SceneError(f"{chain[0]}: {target} includes itself ({' -> '.join(p.name for p in chain + [target])})")
+            raise SceneError(f"{chain[0]}: its includes form a cycle ({' -> '.join(p.name for p in chain + [target])})")
         included = copy.deepcopy(trees[target])  # a file included twice is inlined twice
         _inline(included, trees, chain + [target])
         element[index:index + 1] = list(included)
@@ -346,6 +346,7 @@ def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]
         except SceneError as error:
             whole = next(root.iter("sensor"), None) is not None or next(root.iter("include"), None) is not None
             candidates[path] = error if whole else root
+            continue
         for included in trees:
             includers.setdefault(included, []).append(path)
     scenes: dict[Path, list[Path]] = {where: [] for where in places}
