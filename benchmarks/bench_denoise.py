@@ -29,11 +29,11 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from admc.model.generator import build_generator
-from admc.model.inference import FullImageDenoiser
-from admc.model.tiling import receptive_radius
+from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.tiling import receptive_radius
+from admc.model.nets.backbones import build_generator
 from admc.model.precision import PRECISIONS, resolve_precision
-from admc.model.settings import paper_settings, small_settings
+from admc.model.training.settings import paper_settings, small_settings
 from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
                                                 time_denoiser)
 

@@ -12,9 +12,9 @@ import time
 
 import torch
 
-from admc.model.critic import Critic, CriticConfig
-from admc.model.generator import Generator, GeneratorConfig
-from admc.model.losses import critic_loss, generator_loss
+from admc.model.nets.critic import Critic, CriticConfig
+from admc.model.nets.generator import Generator, GeneratorConfig
+from admc.model.nets.losses import critic_loss, generator_loss
 
 GENERATORS = {
     "paper": GeneratorConfig(),

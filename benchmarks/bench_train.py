@@ -27,8 +27,8 @@ from dataclasses import replace
 
 import torch
 
-from admc.model.branch import BranchTrainer
-from admc.model.settings import paper_settings, small_settings
+from admc.model.training.branch import BranchTrainer
+from admc.model.training.settings import paper_settings, small_settings
 
 
 def make_batch(batch_size: int, patch: int) -> dict[str, torch.Tensor]:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from admc.common.metrics import one_minus_ssim, relmse
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.evaluation.inputs import by_scene, find_test_images, read_reference

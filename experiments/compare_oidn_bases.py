@@ -4,7 +4,7 @@
     python experiments/compare_oidn_bases.py RENDERS_DIR [--every 6]
 
 RENDERS_DIR is a workdir's `renders/` folder (one folder per scene: spp*.exr and reference.exr). Use a
-training corpus, never a test set: the answer decides what admc+oidn refines (model/oidn_base.py).
+training corpus, never a test set: the answer decides what admc+oidn refines (model/inference/oidn_base.py).
 Prints relMSE and 1-SSIM averages per spp against the references, and OIDN's total time for each way.
 
 Backs: docs/design-decisions.md, "OIDN per branch" (on 20 pretraining scenes the per-branch sum had the
@@ -19,7 +19,7 @@ import pyoidn
 
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model import transforms as tf
-from admc.model.oidn_base import QUALITY, oidn_bases
+from admc.model.inference.oidn_base import QUALITY, oidn_bases
 from admc.stores.exr import read_exr
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
 from admc.model.transforms import EPS
 from admc.stores.exr import read_exr
 

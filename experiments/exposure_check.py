@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""How much does exposure normalisation (model/exposure.py) change a denoiser on dim and native images?
+"""How much does exposure normalisation (model/inference/exposure.py) change a denoiser on dim and native images?
 
     python experiments/exposure_check.py STORE RENDERS_DIR WEIGHTS [--split val] [--scales 1 0.25 0.0625]
 
@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from admc.common.metrics import relmse
-from admc.model.exposure import brightness
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.exposure import brightness
 from admc.pipeline.evaluation.baselines import noisy_color
 from admc.pipeline.evaluation.inputs import read_reference
 from admc.stores.exr import read_exr

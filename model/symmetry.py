@@ -1,15 +1,21 @@
-"""The 8 symmetries of the square on (N, C, H, W) tensors, for test-time self-ensembling.
+"""The 8 symmetries of the square (flips and transpose) on (..., C, H, W) tensors: training's
+augmentation and inference's test-time self-ensemble.
 
-The same codes and normal rule as training's augmentation (data.augment): the networks learned every
-symmetry of a patch as equally likely, so each one gives an equally good, slightly different estimate,
-and their average has less of the networks' own error. Codes apply transpose, flip rows, flip columns
-in that order; `undo` applies their inverses in reverse.
+One definition for both: the networks learned every symmetry of a patch as equally likely, so each one
+gives an equally good, slightly different estimate, and their average has less of the networks' own
+error. Codes 0..7 are 3 bits, applied in this order: transpose, flip rows, flip columns; `undo`
+applies their inverses in reverse. The view-space normal channels change with the geometry, so a
+flipped patch is a patch that could have been rendered.
 """
 from __future__ import annotations
 
 from torch import Tensor
 
-from .data import FLIP_COLS, FLIP_ROWS, NORMAL_X, NORMAL_Y, TRANSPOSE
+from admc.common.layout import NORMAL
+
+TRANSPOSE, FLIP_ROWS, FLIP_COLS = 1, 2, 4
+N_SYMMETRIES = 8
+NORMAL_X, NORMAL_Y = NORMAL.start, NORMAL.start + 1  # view-space normal (x right, y up), stored as (n + 1) / 2
 
 HALF_TURN = FLIP_ROWS | FLIP_COLS
 ENSEMBLE_CODES = {1: (0,), 2: (0, TRANSPOSE), 4: (0, TRANSPOSE, HALF_TURN, HALF_TURN | TRANSPOSE),
@@ -19,22 +25,29 @@ its transpose, then the half turn of both."""
 
 
 def apply(x: Tensor, code: int, normals: bool = False) -> Tensor:
-    """Symmetry `code` of `x`; with `normals`, channels NORMAL_X and NORMAL_Y are encoded view-space
-    normals (v = (n + 1) / 2) and change as the geometry does (see data.augment)."""
+    """Symmetry `code` of `x`, which is left alone; with `normals`, channels NORMAL_X and NORMAL_Y are
+    encoded view-space normals, which change sign (v -> 1 - v) as the image geometry does.
+
+    Image rows run downward while view-space y runs up, so: flipping columns negates x, flipping
+    rows negates y, and transposing (a mirror on the anti-diagonal in view space) maps
+    (x, y) -> (-y, -x).
+    """
+    if not 0 <= code < N_SYMMETRIES:
+        raise ValueError(f"symmetry code must be in 0..{N_SYMMETRIES - 1}, got {code}")
     if code & TRANSPOSE:
         x = x.transpose(-2, -1)
         if normals:
             x = x.clone()
-            nx, ny = x[:, NORMAL_X].clone(), x[:, NORMAL_Y].clone()
-            x[:, NORMAL_X], x[:, NORMAL_Y] = 1.0 - ny, 1.0 - nx
+            nx, ny = x[..., NORMAL_X, :, :].clone(), x[..., NORMAL_Y, :, :].clone()
+            x[..., NORMAL_X, :, :], x[..., NORMAL_Y, :, :] = 1.0 - ny, 1.0 - nx
     if code & FLIP_ROWS:
         x = x.flip(-2)
         if normals:
-            x[:, NORMAL_Y] = 1.0 - x[:, NORMAL_Y]
+            x[..., NORMAL_Y, :, :] = 1.0 - x[..., NORMAL_Y, :, :]
     if code & FLIP_COLS:
         x = x.flip(-1)
         if normals:
-            x[:, NORMAL_X] = 1.0 - x[:, NORMAL_X]
+            x[..., NORMAL_X, :, :] = 1.0 - x[..., NORMAL_X, :, :]
     return x
 
 

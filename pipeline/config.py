@@ -17,8 +17,9 @@ from pathlib import Path
 
 from admc.common.layout import ENGINES, ENSEMBLES
 from admc.errors import AdmcError
-from admc.model.critic import DOWNSAMPLING
-from admc.model.settings import ModelSettings, TrainSettings
+from admc.model.nets.critic import DOWNSAMPLING
+from admc.model.nets.settings import ModelSettings
+from admc.model.training.settings import TrainSettings
 
 
 class ConfigError(AdmcError, ValueError):

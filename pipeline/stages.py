@@ -6,8 +6,9 @@ from pathlib import Path
 
 import admc
 from admc.errors import AdmcError
-from admc.model import oidn_base, transforms
-from admc.model.critic import DOWNSAMPLING
+from admc.model import transforms
+from admc.model.inference import oidn_base
+from admc.model.nets.critic import DOWNSAMPLING
 from admc.pipeline import runner, slurm
 from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError

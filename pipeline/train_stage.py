@@ -9,12 +9,12 @@ from pathlib import Path
 
 import admc
 from admc.common.diff import differing_keys
-from admc.model.inference import FullImageDenoiser, load_denoiser
-from admc.model.settings import ModelSettings
-from admc.model import distributed
-from admc.model.distributed import check_world
+from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
-from admc.model.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
+from admc.model.training import distributed
+from admc.model.training.distributed import check_world
+from admc.model.training.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import stage as render
@@ -148,6 +148,6 @@ def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_siz
                engine: str = "torch") -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
     averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
-    second, brighter pass if `dark_pass` (model/exposure.py), its networks run by `engine` (model/engines.py)."""
+    second, brighter pass if `dark_pass` (model/inference/exposure.py), its networks run by `engine` (model/inference/engines.py)."""
     return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
                          ensemble=ensemble, dark_pass=dark_pass, engine=engine)

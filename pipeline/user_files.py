@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.errors import AdmcError
-from admc.model.inference import MISSING_DEPTH, DenoiseResult
+from admc.model.inference.denoiser import MISSING_DEPTH, DenoiseResult
 from admc.stores.exr import BEAUTY, exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",

@@ -13,7 +13,7 @@ import json
 import shutil
 from pathlib import Path
 
-from admc.model.settings import ModelSettings
+from admc.model.nets.settings import ModelSettings
 from admc.stores.checkpoints import load_checkpoint, load_weights
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"

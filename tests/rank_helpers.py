@@ -2,7 +2,7 @@
 imports only torch and admc.model, not the test module's render and pipeline imports."""
 import torch
 
-from admc.model import distributed
+from admc.model.training import distributed
 
 
 def outlive_a_peer() -> str:

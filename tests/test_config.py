@@ -62,7 +62,7 @@ def test_missing_and_malformed_files(tmp_path):
 
 
 def test_model_and_train_sections_match_the_settings_factories():
-    from admc.model.settings import paper_settings, small_settings
+    from admc.model.training.settings import paper_settings, small_settings
 
     assert (load_config().model, load_config().train) == small_settings()
     paper = load_config(REPO / "configs" / "paper.toml")
@@ -86,8 +86,8 @@ def test_model_and_train_errors_name_the_key(override, key):
 
 
 def test_pretrain_corpus_is_disjoint_from_the_default_corpus_and_has_every_family():
-    from admc.pipeline.render.stage import corpus
     from admc.pipeline.render.scenes import FAMILIES
+    from admc.pipeline.render.stage import corpus
 
     pretrain, default = load_config(REPO / "configs" / "pretrain.toml"), load_config()
     specs = corpus(pretrain)

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from conftest import build_tiny_store
-from admc.model.data import N_AUGMENTATIONS, BatchStream, PatchDataset, augment, load_rows, spread_rows, train_loader
+from admc.model.symmetry import N_SYMMETRIES, apply
+from admc.model.training.data import BatchStream, PatchDataset, load_rows, spread_rows, train_loader
 from admc.stores.patches import PatchReader, fingerprint as store_fingerprint
 
 
@@ -42,7 +43,12 @@ def moved_pixel(code: int, height: int, width: int, r: float, c: float) -> tuple
     return r, c, height, width
 
 
-@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
+def augment(array: np.ndarray, code: int, normals: bool = False) -> np.ndarray:
+    """model.symmetry on a (C, H, W) array, as the dataset applies it to each item."""
+    return apply(torch.from_numpy(array), code, normals).numpy()
+
+
+@pytest.mark.parametrize("code", range(N_SYMMETRIES))
 def test_augmented_sphere_normals_equal_the_normals_of_the_moved_sphere(code):
     """An off-centre sphere flipped/transposed must be exactly the sphere rendered at the moved centre."""
     height, width, cy, cx, radius = 12, 16, 4.0, 10.0, 5.5
@@ -66,7 +72,7 @@ def test_normal_rules_as_stated():
     np.testing.assert_allclose(t[2:], v[2:].transpose(0, 2, 1))
 
 
-@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
+@pytest.mark.parametrize("code", range(N_SYMMETRIES))
 def test_every_channel_moves_with_the_same_geometry(code):
     image = np.arange(3 * 4 * 6, dtype=np.float32).reshape(3, 4, 6)
     out = augment(image, code)
@@ -98,7 +104,7 @@ def test_batch_stream_is_seeded_covers_each_epoch_and_resumes_mid_stream():
     assert sorted(flat[:10]) == list(range(10)) and sorted(flat[10:20]) == list(range(10))
     assert flat[:10] != flat[10:20]  # a new permutation each epoch
     codes = {code for batch in full for _, code in batch}
-    assert codes <= set(range(N_AUGMENTATIONS)) and len(codes) > 4
+    assert codes <= set(range(N_SYMMETRIES)) and len(codes) > 4
 
 
 

@@ -16,9 +16,10 @@ import torch
 from conftest import build_tiny_store, tiny_store_overrides
 from rank_helpers import outlive_a_peer
 from admc.errors import TrainingError
-from admc.model import distributed
-from admc.model.settings import ModelSettings, TrainSettings
-from admc.model.trainer import train
+from admc.model.nets.settings import ModelSettings
+from admc.model.training import distributed
+from admc.model.training.settings import TrainSettings
+from admc.model.training.trainer import train
 from admc.pipeline.config import load_config
 from admc.pipeline.train_stage import run_training, train_dir
 from admc.stores.checkpoints import load_checkpoint

@@ -6,8 +6,8 @@ import torch
 from test_export import FLOAT32_LOG_TOLERANCE
 from test_inference import render_layers
 
-from admc.model.engines import EngineError, OnnxGenerator
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.engines import EngineError, OnnxGenerator
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
 from admc.pipeline.train_stage import WEIGHTS_DIR

@@ -9,7 +9,7 @@ import torch
 from test_cli import run
 from test_user_errors_cli import refused
 
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
 from admc.pipeline.train_stage import WEIGHTS_DIR
 
 FLOAT32_LOG_TOLERANCE = 1e-3

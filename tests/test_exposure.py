@@ -7,8 +7,8 @@ from torch import nn
 
 from test_inference import log_tolerance, render_layers, strong_generator
 from test_unet import strong_unet
-from admc.model.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
-from admc.model.inference import FullImageDenoiser, dark_region
+from admc.model.inference.denoiser import FullImageDenoiser, dark_region
+from admc.model.inference.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
 from admc.model.transforms import RADIANCE_MAX, diffuse_forward, specular_forward
 
 def denoiser(normalize: bool, dtype: torch.dtype, dark_pass: bool = True) -> FullImageDenoiser:

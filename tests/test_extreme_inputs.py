@@ -15,10 +15,10 @@ import torch
 from scipy.ndimage import maximum_filter
 
 from admc.common.metrics import one_minus_ssim
-from admc.model.generator import Generator
-from admc.model.inference import FullImageDenoiser, load_denoiser
-from admc.model.tiling import receptive_radius
-from admc.model.settings import ModelSettings
+from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.inference.tiling import receptive_radius
+from admc.model.nets.generator import Generator
+from admc.model.nets.settings import ModelSettings
 from admc.model.transforms import diffuse_forward, specular_forward, transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
 from admc.pipeline.evaluation.evaluate import evaluate
@@ -159,8 +159,8 @@ def _render(scene_dict: dict, spp: int, seed: int) -> dict[str, np.ndarray]:
     import mitsuba as mi
 
     from admc.pipeline.render import integrator
-    from admc.pipeline.render.stage import view_space_normals
     from admc.pipeline.render.scenes import analyse
+    from admc.pipeline.render.stage import view_space_normals
 
     scene = mi.load_dict(scene_dict)
     layers = integrator.render_buffers(scene, spp, seed, split=analyse(scene).has_specular)

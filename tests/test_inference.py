@@ -4,9 +4,9 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
-from admc.model.inference import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
-from admc.model.tiling import CPU_TILE, GPU_TILE, axis_windows, default_tile, receptive_radius, run_tiled
+from admc.model.inference.denoiser import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
+from admc.model.inference.tiling import CPU_TILE, GPU_TILE, axis_windows, default_tile, receptive_radius, run_tiled
+from admc.model.nets.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
 TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

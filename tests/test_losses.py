@@ -5,9 +5,9 @@ import torch
 from torch import nn
 
 from admc.common import metrics
-from admc.model.critic import Critic, CriticConfig
-from admc.model.generator import Generator, GeneratorConfig
-from admc.model.losses import critic_loss, display, display_ssim_loss, generator_loss, gradient_penalty, log_floor
+from admc.model.nets.critic import Critic, CriticConfig
+from admc.model.nets.generator import Generator, GeneratorConfig
+from admc.model.nets.losses import critic_loss, display, display_ssim_loss, generator_loss, gradient_penalty, log_floor
 
 
 class LinearCritic(nn.Module):

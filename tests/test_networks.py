@@ -2,10 +2,10 @@
 import pytest
 import torch
 
-from admc.model.critic import Critic, CriticConfig
-from admc.model.encoder import EncoderNet
-from admc.model.generator import MODES, CFMLayer, Generator, GeneratorConfig
-from admc.model.losses import generator_loss
+from admc.model.nets.critic import Critic, CriticConfig
+from admc.model.nets.encoder import EncoderNet
+from admc.model.nets.generator import MODES, CFMLayer, Generator, GeneratorConfig
+from admc.model.nets.losses import generator_loss
 
 TINY = dict(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
 
@@ -153,7 +153,7 @@ def test_critic_rejects_wrong_patch_sizes():
 
 def test_input_skip_starts_at_the_identity():
     """With the tail's last conv zeroed, an input-skip generator returns its (non-negative) input."""
-    from admc.model.generator import Generator, GeneratorConfig
+    from admc.model.nets.generator import Generator, GeneratorConfig
     torch.manual_seed(0)
     net = Generator(GeneratorConfig(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_skip=True))
     torch.nn.init.zeros_(net.tail[2].weight)

@@ -9,11 +9,13 @@ import pytest
 import torch
 
 from admc.model import transforms as tf
-from admc.model.generator import GeneratorConfig, build_generator
-from admc.model.inference import FullImageDenoiser
-from admc.model.oidn_base import oidn_bases
-from admc.model.settings import ModelSettings, small_settings
-from admc.model.trainer import train
+from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.oidn_base import oidn_bases
+from admc.model.nets.backbones import build_generator
+from admc.model.nets.generator import GeneratorConfig
+from admc.model.nets.settings import ModelSettings
+from admc.model.training.settings import small_settings
+from admc.model.training.trainer import train
 from admc.pipeline.config import ConfigError, load_config
 from admc.pipeline.stages import build_dataset
 from admc.stores import exr, patches
@@ -105,7 +107,7 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
                                    val_patches=2, checkpoint_every=2, log_every=1, head_tail_start_step=0)
     result = train(store, tmp_path / "run", settings, model, progress=False)
     assert result.validation["diffuse"]["base_relmse"] > 0  # OIDN's own score: what the run must beat
-    from admc.model.inference import load_denoiser
+    from admc.model.inference.denoiser import load_denoiser
 
     denoiser = load_denoiser(result.weights)
     assert denoiser.name == "admc+oidn" and denoiser.base == "oidn"
@@ -138,7 +140,7 @@ def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn(store_with_b
 
 def test_fine_tuning_refuses_weights_of_the_other_base():
     from admc.errors import TrainingError
-    from admc.model.resume import load_init
+    from admc.model.training.resume import load_init
     from admc.pipeline.train_stage import shipped_weights
 
     model = load_config(None, []).model

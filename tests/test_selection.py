@@ -13,12 +13,13 @@ from torch import nn
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store
-from admc.model.data import load_rows
-from admc.model.generator import build_generator
-from admc.model.selection import BestNetworks, improvement_z, selection_values
-from admc.model.validation import baseline_scores, validate
-from admc.model.settings import ModelSettings, TrainSettings
-from admc.model.trainer import train
+from admc.model.nets.backbones import build_generator
+from admc.model.nets.settings import ModelSettings
+from admc.model.training.data import load_rows
+from admc.model.training.selection import BestNetworks, improvement_z, selection_values
+from admc.model.training.settings import TrainSettings
+from admc.model.training.trainer import train
+from admc.model.training.validation import baseline_scores, validate
 from admc.stores.checkpoints import load_checkpoint, load_weights
 from admc.stores.patches import PatchReader, list_scenes
 

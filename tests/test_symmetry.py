@@ -1,26 +1,25 @@
-"""Test-time self-ensembling: the 8 symmetries on tensors agree with training's augmentation, and an
-8-way ensemble denoiser is equivariant to them, as a group average must be."""
+"""Test-time self-ensembling: the 8 symmetries on a batch are training's augmentation of each item, and
+an 8-way ensemble denoiser is equivariant to them, as a group average must be."""
 import numpy as np
 import pytest
 import torch
 
 from admc.common.layout import ENSEMBLES
-from admc.model.data import N_AUGMENTATIONS, augment
-from admc.model.inference import FullImageDenoiser
-from admc.model.symmetry import ENSEMBLE_CODES, apply, undo
+from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.symmetry import ENSEMBLE_CODES, N_SYMMETRIES, apply, undo
 from admc.model.transforms import diffuse_forward, specular_forward
 from test_inference import log_tolerance, render_layers, strong_generator
 
 
-@pytest.mark.parametrize("code", range(N_AUGMENTATIONS))
-def test_tensor_symmetries_are_trainings_augmentation_and_undo_inverts_them(code):
+@pytest.mark.parametrize("code", range(N_SYMMETRIES))
+def test_batch_symmetries_are_each_items_augmentation_and_undo_inverts_them(code):
     rng = np.random.default_rng(code)
     features = rng.random((2, 7, 5, 9), dtype=np.float32)
     original = features.copy()
     applied = apply(torch.from_numpy(features), code, normals=True)
     np.testing.assert_array_equal(features, original)  # the input is left alone (the normals are edited in copies)
     for n in range(2):
-        np.testing.assert_array_equal(applied[n].numpy(), augment(features[n], code, normals=True))
+        np.testing.assert_array_equal(applied[n].numpy(), apply(torch.from_numpy(features[n]), code, normals=True).numpy())
     image = torch.from_numpy(features[:, :3])
     assert torch.equal(undo(apply(image, code), code), image)
 

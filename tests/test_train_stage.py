@@ -167,7 +167,7 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
 def test_the_default_config_finds_the_shipped_weights_and_they_load():
     """`make demo` fine-tunes from weights/: the default [model] must match a manifest entry (settings
     added after the weights were shipped take the defaults that reproduce them)."""
-    from admc.model.inference import load_denoiser
+    from admc.model.inference.denoiser import load_denoiser
 
     model = load_config().model
     path = shipped_weights(model)
@@ -190,9 +190,9 @@ def test_every_shipped_file_is_whole_and_is_the_architecture_its_entry_names():
     as the [model] the entry records (the multi-scale admc-small-unet.pt beside the residual files)."""
     import hashlib
 
-    from admc.model.inference import load_denoiser
-    from admc.model.settings import ModelSettings
-    from admc.model.unet import UNetGenerator
+    from admc.model.inference.denoiser import load_denoiser
+    from admc.model.nets.settings import ModelSettings
+    from admc.model.nets.unet import UNetGenerator
     from admc.pipeline.train_stage import WEIGHTS_DIR
 
     entries = json.loads((WEIGHTS_DIR / "manifest.json").read_text())["weights"]

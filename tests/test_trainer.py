@@ -11,11 +11,12 @@ import zarr
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store
-from admc.model.branch import BranchTrainer
-from admc.model.data import load_rows
-from admc.model.generator import MODES
-from admc.model.settings import ModelSettings, TrainSettings, paper_settings, small_settings
-from admc.model.trainer import TrainingDiverged, train
+from admc.model.nets.generator import MODES
+from admc.model.nets.settings import ModelSettings
+from admc.model.training.branch import BranchTrainer
+from admc.model.training.data import load_rows
+from admc.model.training.settings import TrainSettings, paper_settings, small_settings
+from admc.model.training.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
                                      read_networks, save_checkpoint)
 from admc.stores.patches import PatchReader, PatchStoreError

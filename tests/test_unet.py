@@ -6,13 +6,15 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.branch import BranchTrainer
-from admc.model.generator import Generator, GeneratorConfig, build_generator, scaled_kaiming_
-from admc.model.inference import FullImageDenoiser, load_denoiser
-from admc.model.tiling import receptive_radius, run_tiled
-from admc.model.settings import ModelSettings, TrainSettings
+from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.inference.tiling import receptive_radius, run_tiled
+from admc.model.nets.backbones import build_generator
+from admc.model.nets.generator import Generator, GeneratorConfig, scaled_kaiming_
+from admc.model.nets.settings import ModelSettings
+from admc.model.nets.unet import UNetGenerator
+from admc.model.training.branch import BranchTrainer
+from admc.model.training.settings import TrainSettings
 from admc.model.transforms import EPS, diffuse_forward, transform_spec
-from admc.model.unet import UNetGenerator
 from admc.stores.checkpoints import export_weights
 from test_inference import log_tolerance
 

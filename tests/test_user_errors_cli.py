@@ -12,7 +12,7 @@ import pytest
 from test_cli import ADMC, _oidn_style_input, run
 from test_train_stage import flags, settings
 
-from admc.model.settings import ModelSettings
+from admc.model.nets.settings import ModelSettings
 from admc.pipeline.config import load_config
 from admc.pipeline.train_stage import WEIGHTS_DIR
 from admc.stores.checkpoints import export_weights, load_checkpoint, load_weights

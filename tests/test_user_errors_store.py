@@ -71,8 +71,8 @@ def test_train_tiles_a_damaged_scene_again_before_training_and_says_so(tiny):
     assert patches.damaged_arrays(store, "train", scene) == []
 
 def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_path):
-    from admc.model.settings import small_settings
-    from admc.model.trainer import train
+    from admc.model.training.settings import small_settings
+    from admc.model.training.trainer import train
     from dataclasses import replace
 
     store, _, scene = tiny

@@ -4,8 +4,8 @@ import OpenEXR
 import pytest
 import torch
 
-from admc.model.generator import Generator, GeneratorConfig
-from admc.model.inference import FullImageDenoiser
+from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.nets.generator import Generator, GeneratorConfig
 from admc.pipeline.user_files import DenoiseInputError, load_denoise_input, write_denoised
 from admc.stores.exr import ExrError, read_exr, write_exr
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.model import transforms as tf
-from admc.model.oidn_base import describe as describe_oidn, oidn_bases
+from admc.model.inference.oidn_base import describe as describe_oidn, oidn_bases
 from admc.pipeline.render.stage import EXR_NAME
 from admc.stores import exr, patches
 

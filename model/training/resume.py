@@ -13,7 +13,8 @@ from admc.common.diff import differing_keys
 from admc.errors import TrainingError
 from admc.stores.checkpoints import read_networks
 
-from .settings import ModelSettings, TrainSettings
+from ..nets.settings import ModelSettings
+from .settings import TrainSettings
 
 # Settings a resumed run may change without changing what it computes.
 # precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the

@@ -24,7 +24,8 @@ COLOR_CHANNELS = 3
 MODES = ("cfm", "none", "concat", "shift", "scale")
 MODULATED_MODES = ("cfm", "shift", "scale")
 # "residual": the paper's body of residual blocks at full resolution; "unet": the same CFM residual
-# blocks on a multi-scale body (model/unet.py), which sees far more pixels at the same cost.
+# blocks on a multi-scale body (model/nets/unet.py), which sees far more pixels at the same cost.
+# backbones.py maps each name to its class.
 BACKBONES = ("residual", "unet")
 
 
@@ -162,8 +163,8 @@ class Generator(nn.Module):
 
     Fully convolutional with same-size (replicate-padded) convs everywhere, so any H and W work. The
     authors' network has no skip from the input to the output; `input_skip` adds one (see
-    GeneratorConfig). This class is the paper's full-resolution body; `build_generator` picks the
-    backbone a config names.
+    GeneratorConfig). This class is the paper's full-resolution body; backbones.build_generator picks
+    the backbone a config names.
 
     A refiner (`config.base = "oidn"`) is called as `forward(noisy, features, base)`: the head sees the
     base (OIDN's output, same log domain as noisy), the EncoderNet sees features + noisy, and the tail's
@@ -283,12 +284,3 @@ class Generator(nn.Module):
         if self.body_cfm is not None:
             f = self.body_cfm(f, cond)
         return head + self.body_conv(f)
-
-
-def build_generator(config: GeneratorConfig) -> Generator:
-    """The generator of the backbone `config` names."""
-    if config.backbone == "unet":
-        from .unet import UNetGenerator
-
-        return UNetGenerator(config)
-    return Generator(config)

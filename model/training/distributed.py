@@ -36,7 +36,8 @@ from tqdm import tqdm
 from admc.errors import AdmcError, DeviceError, TrainingError
 
 if TYPE_CHECKING:
-    from .settings import ModelSettings, TrainSettings
+    from ..nets.settings import ModelSettings
+    from .settings import TrainSettings
 
 
 class RankFailed(AdmcError, RuntimeError):

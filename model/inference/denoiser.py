@@ -22,14 +22,11 @@ from torch import Tensor, nn
 
 from admc.common.diff import differing_keys
 
-from .engines import check_engine, default_precision, onnx_generators
-from .exposure import DARK_GAIN, dark_weights, exposure_gain
-from .generator import Generator, build_generator
-from .oidn_base import oidn_bases
-from .precision import MEMORY_FORMAT, autocast_for, precision_name
-from .symmetry import ENSEMBLE_CODES, apply, undo
-from .tiling import default_tile, receptive_radius, run_tiled
-from .transforms import (
+from ..nets.backbones import build_generator
+from ..nets.generator import Generator
+from ..precision import MEMORY_FORMAT, autocast_for, precision_name
+from ..symmetry import ENSEMBLE_CODES, apply, undo
+from ..transforms import (
     EPS,
     RADIANCE_MAX,
     diffuse_forward,
@@ -39,6 +36,13 @@ from .transforms import (
     specular_forward,
     specular_inverse,
 )
+from .engines import check_engine, default_precision, onnx_generators
+from .exposure import DARK_GAIN, dark_weights, exposure_gain
+from .exposure import DARK_GAIN, dark_weights, exposure_gain
+from .oidn_base import oidn_bases
+from .oidn_base import oidn_bases
+from .tiling import default_tile, receptive_radius, run_tiled
+from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
 MISSING_DEPTH = 1.0
@@ -350,8 +354,8 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
     """
     from admc.stores.checkpoints import CheckpointError, load_network, read_networks
 
-    from .settings import ModelSettings
-    from .transforms import transform_spec
+    from ..nets.settings import ModelSettings
+    from ..transforms import transform_spec
 
     nets, model, transform = read_networks(path)
     if transform != transform_spec():

@@ -18,8 +18,8 @@ from torch import Tensor, nn
 from admc.common.layout import ENGINES
 from admc.errors import AdmcError
 
+from ..precision import resolve_precision
 from .export import export_generator
-from .precision import resolve_precision
 
 class EngineError(AdmcError, ValueError):
     """An engine that does not exist, is not installed, or cannot run as asked (device, precision)."""

@@ -3,9 +3,7 @@
 The sample order and each sample's augmentation are a pure function of (seed, branch, position in
 the stream), drawn in the main process: the data a run sees does not depend on the number of
 workers or their scheduling, and a resumed run continues the stream by starting at the number of
-batches it had consumed. Augmentation is the 8 symmetries of the square (flips and transpose); the
-view-space normal channels are transformed with the image, so a flipped patch is a patch that could
-have been rendered.
+batches it had consumed. Augmentation is the 8 symmetries of the square (symmetry.py).
 """
 from __future__ import annotations
 
@@ -17,40 +15,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from admc.stores.patches import PatchReader
 
-# Augmentation codes 0..7 are 3 bits, applied in this order: transpose, flip rows, flip columns.
-TRANSPOSE, FLIP_ROWS, FLIP_COLS = 1, 2, 4
-N_AUGMENTATIONS = 8
-NORMAL_X, NORMAL_Y = 0, 1  # feature channels of the view-space normal (x right, y up), stored as (n + 1) / 2
-
-
-def augment(image: np.ndarray, code: int, normals: bool = False) -> np.ndarray:
-    """Apply symmetry `code` to a (C, H, W) array; with `normals`, channels 0 and 1 are the encoded
-    view-space normal x and y, which change sign (v -> 1 - v) as the image geometry does.
-
-    Image rows run downward while view-space y runs up, so: flipping columns negates x, flipping
-    rows negates y, and transposing (a mirror on the anti-diagonal in view space) maps
-    (x, y) -> (-y, -x).
-    """
-    if not 0 <= code < N_AUGMENTATIONS:
-        raise ValueError(f"augment: code must be in 0..{N_AUGMENTATIONS - 1}, got {code}")
-    out = image
-    if normals:
-        out = out.copy()
-    if code & TRANSPOSE:
-        out = out.transpose(0, 2, 1)
-        if normals:
-            x, y = out[NORMAL_X].copy(), out[NORMAL_Y].copy()
-            out[NORMAL_X], out[NORMAL_Y] = 1.0 - y, 1.0 - x
-    if code & FLIP_ROWS:
-        out = out[:, ::-1, :]
-        if normals:
-            out[NORMAL_Y] = 1.0 - out[NORMAL_Y]
-    if code & FLIP_COLS:
-        out = out[:, :, ::-1]
-        if normals:
-            out[NORMAL_X] = 1.0 - out[NORMAL_X]
-    return np.ascontiguousarray(out)
-
+from ..symmetry import N_SYMMETRIES, apply
 
 IMAGE_KEYS = ("noisy", "features", "reference", "base")
 """The image entries of an item or batch ("base" only from a reader opened with base=True)."""
@@ -72,7 +37,7 @@ class PatchDataset(Dataset):
     def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
         row, code = key
         item = self.reader[row]
-        return {name: torch.from_numpy(augment(item[name], code, normals=name == "features"))
+        return {name: apply(torch.from_numpy(item[name]), code, normals=name == "features").contiguous()
                 for name in IMAGE_KEYS if name in item}
 
 
@@ -100,7 +65,7 @@ class BatchStream:
     def _epoch(self, epoch: int) -> tuple[np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.seed, epoch])
         order = rng.permutation(self.n_rows)
-        codes = rng.integers(0, N_AUGMENTATIONS, self.n_rows) if self.augment else np.zeros(self.n_rows, int)
+        codes = rng.integers(0, N_SYMMETRIES, self.n_rows) if self.augment else np.zeros(self.n_rows, int)
         return order, codes
 
     def __iter__(self) -> Iterator[list[tuple[int, int]]]:

@@ -22,21 +22,22 @@ import torch
 from tqdm import tqdm
 
 from admc.errors import AdmcError, TrainingError
-from admc.stores.checkpoints import export_weights, load_checkpoint, save_checkpoint
 from admc.stores import patches
+from admc.stores.checkpoints import export_weights, load_checkpoint, save_checkpoint
 from admc.stores.patches import PatchReader, PatchStoreError
 
+from ..nets.settings import ModelSettings
+from ..precision import precision_name, resolve_device
+from ..transforms import transform_spec
 from .branch import BranchTrainer
-from .distributed import RankFailed, Ranks, broadcast_modules, check_world, current, rank_device
 from .data import branch_seed, load_rows, train_loader
+from .distributed import RankFailed, Ranks, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
-from .selection import BestNetworks, selection_values
-from .precision import precision_name, resolve_device
 from .progress import ProgressWindow
 from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
                      set_rng_state)
-from .settings import STAGES, ModelSettings, TrainSettings
-from .transforms import transform_spec
+from .selection import BestNetworks, selection_values
+from .settings import STAGES, TrainSettings
 from .validation import baseline_scores, validate
 
 CHECKPOINT_NAME = "checkpoint.pt"

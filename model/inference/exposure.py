@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from .transforms import RADIANCE_MAX
+from ..transforms import RADIANCE_MAX
 
 TRAINED_BRIGHTNESS = 0.21
 """Median brightness() of the pretraining corpus's noisy renders (configs/pretrain.toml, its 114 train

@@ -13,9 +13,9 @@ from torch import Tensor
 from admc.common.layout import ALBEDO
 from admc.common.metrics import one_minus_ssim_torch, psnr_torch, relmse_torch
 
-from .precision import MEMORY_FORMAT, autocast_for
-from .generator import Generator
-from .transforms import EPS
+from ..nets.generator import Generator
+from ..precision import MEMORY_FORMAT, autocast_for
+from ..transforms import EPS
 
 
 def linear_scale(features: Tensor, branch: str) -> Tensor | None:

@@ -25,13 +25,14 @@ from torch import Tensor, nn
 
 from admc.stores.checkpoints import load_network
 
-from .critic import Critic
+from ..nets.backbones import build_generator
+from ..nets.critic import Critic
+from ..nets.losses import critic_loss, generator_loss
+from ..nets.settings import ModelSettings
+from ..precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
-from .generator import build_generator
-from .losses import critic_loss, generator_loss
-from .precision import MEMORY_FORMAT, autocast_for, resolve_precision
-from .settings import ModelSettings, TrainSettings
+from .settings import TrainSettings
 from .validation import linear_scale
 
 ADAM_BETAS = (0.9, 0.999)

@@ -18,7 +18,7 @@ from torch import nn
 
 from admc.common.layout import FEATURE_CHANNELS
 
-from .generator import Generator
+from ..nets.generator import Generator
 
 OPSET = 17
 """ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""

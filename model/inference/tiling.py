@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from .generator import Generator
+from ..nets.generator import Generator
 
 
 CPU_TILE = 320

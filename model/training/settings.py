@@ -1,0 +1,129 @@
+"""Training settings: the `[train]` section of a run config (`[model]` is nets/settings.py).
+
+Fields use only int/float/str/bool/tuple so the generic TOML loader can type-check them; `check()`
+raises ValueError("<field>: <problem>"). The dataclass defaults are the paper's scale (values from
+the authors' code where code and paper text disagree, see paper_settings); small_settings() is a CPU
+default that trains a few hundred steps in minutes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from admc.common.layout import BRANCHES
+
+from ..checks import non_negative_ints, positive_ints, require
+from ..nets.settings import ModelSettings
+from .selection import SELECT_METRICS
+
+DEVICES = ("auto", "cpu", "cuda")
+PRECISIONS = ("auto", "float32", "bfloat16")
+STAGES = ("pretrain", "finetune")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """One training stage. Steps are global iterations; every branch takes one step per iteration.
+
+    Schedule: steps < l1_warmup_steps train the generator on L1 only; the next critic_only_steps
+    train the critic alone against the frozen generator (the paper's critic pretraining); after
+    that WGAN-GP training, critic_steps_per_g critic updates (each on a fresh batch) per generator
+    update. adversarial=False is the "L1 only" ablation: every step is an L1 step.
+    """
+
+    steps: int = 600_000
+    batch_size: int = 8
+    l1_warmup_steps: int = 0
+    critic_only_steps: int = 0
+    critic_steps_per_g: int = 1
+    lr_g_diffuse: float = 1e-6
+    lr_g_specular: float = 1e-4
+    lr_d: float = 1e-4
+    body_lr_factor: float = 5.0           # body + encoder learn at this multiple of the branch's lr
+    head_tail_start_step: int = 20_000    # head and tail stay fixed before this step
+    lr_milestones: tuple[int, ...] = (50_000, 100_000, 150_000, 200_000)
+    lr_gamma: float = 0.5
+    l1_weight: float = 1.0
+    l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
+    ssim_weight: float = 0.0              # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
+    ema: float = 0.0                      # validate and ship an exponential moving average of the generator's
+                                          # weights with this decay per step (branch.py); 0 = the weights themselves
+    adv_weight: float = 5e-3
+    gp_weight: float = 10.0
+    adversarial: bool = True
+    val_every: int = 5_000                # 0 = no validation
+    val_patches: int = 64
+    select_metric: str = "relmse"         # what ranks validated steps: relmse | relmse+ssim (selection.py)
+    select_z: float = 2.0                 # a fine-tuning ships a step only this many standard errors better than
+                                          # its starting weights on the val patches (selection.py); 0: any better
+    checkpoint_every: int = 5_000
+    log_every: int = 100
+    num_workers: int = 4
+    threads: int = 0                      # CPU intra-op threads; 0 = torch's default
+    device: str = "auto"
+    precision: str = "auto"               # auto | float32 | bfloat16 (autocast; see branch.resolve_precision)
+    seed: int = 0
+    max_bad_steps: int = 20               # consecutive non-finite steps before training stops
+    branches: tuple[str, ...] = BRANCHES
+
+    def check(self) -> None:
+        positive_ints(self, ("steps", "batch_size", "critic_steps_per_g", "checkpoint_every", "log_every",
+                             "max_bad_steps"))
+        non_negative_ints(self, ("l1_warmup_steps", "critic_only_steps", "head_tail_start_step", "val_every",
+                                 "num_workers", "threads", "seed"))
+        require(self.val_every == 0 or (isinstance(self.val_patches, int) and self.val_patches >= 1),
+                "val_patches", f"must be >= 1 when val_every > 0, got {self.val_patches!r}")
+        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
+            value = getattr(self, name)
+            require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
+        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z"):
+            value = getattr(self, name)
+            require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
+        require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema",
+                f"must be in [0, 1), got {self.ema!r}")
+        require(self.lr_gamma <= 1, "lr_gamma", f"must be in (0, 1], got {self.lr_gamma!r}")
+        milestones = list(self.lr_milestones)
+        require(all(isinstance(m, int) and m >= 1 for m in milestones) and milestones == sorted(set(milestones)),
+                "lr_milestones", f"must be strictly increasing ints >= 1, got {milestones}")
+        require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
+        require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
+        require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
+        require(self.select_metric in SELECT_METRICS, "select_metric",
+                f"{self.select_metric!r} is not one of {SELECT_METRICS}")
+        require(len(self.branches) > 0 and all(b in BRANCHES for b in self.branches)
+                and len(set(self.branches)) == len(self.branches),
+                "branches", f"must be distinct names from {BRANCHES}, got {list(self.branches)}")
+        require(self.l1_weight > 0 or self.ssim_weight > 0 or self.adversarial, "l1_weight",
+                "and ssim_weight are 0 and adversarial is off: nothing to train")
+
+    def lr_g(self, branch: str) -> float:
+        return self.lr_g_diffuse if branch == "diffuse" else self.lr_g_specular
+
+    def phase(self, step: int) -> str:
+        """"l1", "critic" (generator frozen) or "adversarial" for a 0-based global step."""
+        if not self.adversarial or step < self.l1_warmup_steps:
+            return "l1"
+        if step < self.l1_warmup_steps + self.critic_only_steps:
+            return "critic"
+        return "adversarial"
+
+
+def paper_settings() -> tuple[ModelSettings, TrainSettings]:
+    """The authors' scale: 1.53 M-parameter generators, VGG-128 critics, 600k steps of batch 8.
+
+    Learning rates are the authors' shipped configs (diffuse 1e-6, specular 1e-4, critic 1e-4); the
+    paper text swaps the two generator rates. The code has no L1 warm-up and no critic pretraining
+    (both 0 here); admc adds them as options. admc's critic uses layer norm (the code: BatchNorm).
+    """
+    return ModelSettings(), TrainSettings()
+
+
+def small_settings() -> tuple[ModelSettings, TrainSettings]:
+    """A CPU default: tiny networks, 300 steps of batch 2 on 128x128 patches, ~0.6 s per step for both
+    branches on one busy core here (~3 min); a demo of the whole pipeline, not a good denoiser."""
+    model = ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32, critic_channels=8,
+                          input_skip=True)
+    train = replace(TrainSettings(), steps=300, batch_size=2, l1_warmup_steps=100, critic_only_steps=50,
+                    lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=50,
+                    lr_milestones=(200,), val_every=100, val_patches=64, checkpoint_every=100,
+                    log_every=10, num_workers=0, threads=0)
+    return model, train
