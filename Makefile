@@ -5,7 +5,7 @@ CONFIG  ?=
 ARGS    ?=
 CFGARG  := $(if $(CONFIG),--config $(CONFIG),)
 
-.PHONY: setup demo render dataset train eval test bench clean
+.PHONY: setup demo render dataset train eval ood test bench clean
 
 setup:
 	@bash scripts/setup.sh
@@ -26,6 +26,9 @@ train: setup                ## pretrain on the corpus (STAGE=finetune to start f
 
 eval: setup                 ## Table 1, error vs time and the HTML page for the test split
 	$(ADMC) eval $(CFGARG) $(ARGS)
+
+ood: setup                  ## Table 1 on the out-of-family set (family 'ood', held out of training; docs/corpus.md)
+	$(ADMC) eval --set eval.split=ood --set eval.out_dir=eval-ood $(CFGARG) $(ARGS)
 
 test: setup                 ## the test suite (real renders, tiny sizes)
 	$(PY) -m pytest -q --durations=15 $(ARGS)

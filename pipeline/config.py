@@ -36,11 +36,29 @@ class CorpusConfig:
     families: tuple[str, ...]
     n_scenes: int
     seed: int
+    constructs: tuple[str, ...]
+    construct_chance: float
+    held_out_families: tuple[str, ...]
     xml_dirs: tuple[str, ...]
     xml_resolution: str
 
     def check(self) -> None:
+        from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, OOD_CONSTRUCTS
+
         _require(self.n_scenes >= 0, "corpus.n_scenes", f"must be >= 0, got {self.n_scenes}")
+        for key, names, known in (("corpus.families", self.families, FAMILIES),
+                                  ("corpus.held_out_families", self.held_out_families, FAMILIES)):
+            unknown = [name for name in names if name not in known]
+            _require(not unknown, key, f"unknown families {unknown}; known: {', '.join(sorted(known))}")
+        held = [name for name in self.families if name in self.held_out_families]
+        _require(not held, "corpus.families", f"{held} held out of training (corpus.held_out_families); "
+                                              "they are the out-of-family set's, never tiled into training")
+        ood = [name for name in self.constructs if name in OOD_CONSTRUCTS]
+        _require(not ood, "corpus.constructs", f"{ood} are held out for the out-of-family set (family 'ood')")
+        unknown = [name for name in self.constructs if name not in CONSTRUCTS]
+        _require(not unknown, "corpus.constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCTS)}")
+        _require(0.0 <= self.construct_chance <= 1.0, "corpus.construct_chance",
+                 f"must be in [0, 1], got {self.construct_chance}")
         _require(self.xml_resolution in ("render", "film"), "corpus.xml_resolution",
                  f"must be render or film, got {self.xml_resolution!r}")
         _require(self.n_scenes == 0 or len(self.families) > 0, "corpus.families", "empty but n_scenes > 0")
@@ -76,6 +94,7 @@ class TileConfig:
     candidates_per_crop: int
     split: tuple[float, float, float]
     seed: int
+    val_set: str
     oidn_base: bool
 
     def check(self) -> None:
@@ -87,6 +106,7 @@ class TileConfig:
         _require(all(f >= 0 for f in self.split) and sum(self.split) > 0, "tile.split",
                  f"fractions must be >= 0 and not all 0, got {list(self.split)}")
         _require(bool(self.store), "tile.store", "must not be empty")
+        _require(self.val_set in ("split", "ood"), "tile.val_set", f"must be split or ood, got {self.val_set!r}")
 
 
 @dataclass(frozen=True)
@@ -100,6 +120,9 @@ class EvalConfig:
     test_families: tuple[str, ...]
     test_scenes_per_family: int
     test_seed: int
+    ood_families: tuple[str, ...]
+    ood_scenes_per_family: int
+    ood_seed: int
     ensemble: int
     dark_pass: bool
     engine: str
@@ -109,7 +132,16 @@ class EvalConfig:
                  f"must be >= 0, got {self.test_scenes_per_family}")
         _require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "eval.test_families",
                  "empty but eval.test_scenes_per_family > 0")
-        _require(self.split in ("train", "val", "test"), "eval.split", f"must be train, val or test, got {self.split!r}")
+        _require(self.split in ("train", "val", "test", "ood"), "eval.split",
+                 f"must be train, val, test or ood, got {self.split!r}")
+        _require(self.ood_scenes_per_family >= 0, "eval.ood_scenes_per_family",
+                 f"must be >= 0, got {self.ood_scenes_per_family}")
+        _require(self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families), "eval.ood_families",
+                 "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0")
+        from admc.pipeline.render.scenes import FAMILIES
+
+        unknown = [name for name in self.ood_families if name not in FAMILIES]
+        _require(not unknown, "eval.ood_families", f"unknown families {unknown}; known: {', '.join(sorted(FAMILIES))}")
         _require(self.oidn_quality in ("fast", "balanced", "high"), "eval.oidn_quality",
                  f"must be fast, balanced or high, got {self.oidn_quality!r}")
         _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")
@@ -294,15 +326,19 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
         sections[field.name] = section
     config = Config(**sections)
     _check_test_set_apart(config)
+    _require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
+             "tile.val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty")
     _require(config.model.base != "oidn" or config.tile.oidn_base, "tile.oidn_base",
              "is false, but model.base = 'oidn' trains on OIDN's outputs, which tiling stores only when it is true")
     return config
 
 
 def _check_test_set_apart(config: Config) -> None:
-    """The dedicated test scenes must not be the training corpus's own scenes (same seed, same family)."""
-    shared = set(config.corpus.families) & set(config.eval.test_families)
-    _require(not (config.eval.test_scenes_per_family and config.corpus.n_scenes and shared
-                  and config.eval.test_seed == config.corpus.seed), "eval.test_seed",
-             f"equals corpus.seed ({config.corpus.seed}): the test scenes of {sorted(shared)} would be "
-             f"training scenes; choose a seed no training corpus uses")
+    """The dedicated test and out-of-family scenes must not be the training corpus's own scenes (same
+    seed, same family): scene seeds are seed * SEEDS_PER_CORPUS + k, so another seed is another scene."""
+    for name in ("test", "ood"):
+        families, count, seed = (getattr(config.eval, f"{name}_{key}") for key in ("families", "scenes_per_family", "seed"))
+        shared = set(config.corpus.families) & set(families)
+        _require(not (count and config.corpus.n_scenes and shared and seed == config.corpus.seed), f"eval.{name}_seed",
+                 f"equals corpus.seed ({config.corpus.seed}): the {name} scenes of {sorted(shared)} would be "
+                 f"training scenes; choose a seed no training corpus uses")

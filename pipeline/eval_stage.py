@@ -41,7 +41,9 @@ class EvalOutcome:
 def eval_scenes(cfg: Config) -> list[SceneSpec]:
     """The corpus scenes assigned to the eval split (the same stable per-scene rule as tiling), and for
     the test split the dedicated test scenes: a fixed number per family, so every family is measured
-    on enough images whatever the corpus size."""
+    on enough images whatever the corpus size. The ood split is the out-of-family set alone."""
+    if cfg.eval.split == "ood":
+        return render.ood_corpus(cfg)
     chosen = [s for s in render.corpus(cfg)
               if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
     if cfg.eval.split == "test":

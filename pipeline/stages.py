@@ -121,14 +121,37 @@ def store_attributes(cfg: Config) -> dict:
     }
 
 
+def dataset_splits(cfg: Config, left_out: list[SceneError] | None = None) -> dict[str, tuple[SceneSpec, str]]:
+    """{scene id: (spec, split)} of what the patch store holds: the corpus split by tile.split, except
+    that with tile.val_set = "ood" the val split is the out-of-family set (checkpoints are then selected
+    on scenes unlike the training ones) and the corpus's own val scenes are left out."""
+    chosen = {spec.scene_id: (spec, tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed))
+              for spec in render.corpus(cfg, left_out)}
+    if cfg.tile.val_set == "ood":
+        chosen = {key: value for key, value in chosen.items() if value[1] != "val"}
+        chosen.update({spec.scene_id: (spec, "val") for spec in render.ood_corpus(cfg)})
+    return chosen
+
+
+def _check_val_set(store: Path, val_ids: set[str], cfg: Config) -> None:
+    """A store's val split must hold the scenes tile.val_set names and no others: validating on a mix of
+    corpus and out-of-family scenes would select on neither."""
+    strays = sorted(set(patches.list_scenes(store, "val")) - val_ids)
+    if strays:
+        raise StageError(f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
+                         f"tile.val_set = {cfg.tile.val_set!r} does not put there; use another tile.store")
+
+
 def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = True) -> StageResult:
     """Render + tile as one graph: each scene's tile task depends on its render tasks (failures: see render_corpus)."""
     left_out: list[SceneError] = []
-    specs = render.corpus(cfg, left_out)
+    splits = dataset_splits(cfg, left_out)
+    specs = [spec for spec, _ in splits.values()]
     check_patch_fits(cfg, specs)
     renders = render.render_tasks(cfg, specs)
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
+    _check_val_set(store_path, {scene_id for scene_id, (_, split) in splits.items() if split == "val"}, cfg)
     cache = open_cache(cfg)
     if not render_missing:
         missing = [t.label for levels in renders.values() for t in levels.values() if not cache.is_done(t)]
@@ -138,7 +161,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     tiles, retiled = [], []
     for spec in specs:
         levels = renders[spec.scene_id]
-        split = tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed)
+        split = splits[spec.scene_id][1]
         task = Task(stage="tile", label=f"tile {spec.scene_id}", fn=tile.tile_scene, inputs=levels,
                     code_version=TILE_CODE, params={
                         "store": str(store_path), "split": split, "scene_id": spec.scene_id,

@@ -104,14 +104,14 @@ def _prepare(cfg: Config, stage: str, init_from: Path | None, restart: bool, pro
 
 def check_splits(cfg: Config) -> None:
     """Refuse, before anything is rendered, a tile.split that leaves training (or validation, with
-    train.val_every > 0) without a single scene of the corpus."""
+    train.val_every > 0 and tile.val_set = "split") without a single scene of the corpus."""
     specs = render.corpus(cfg)
     counts = Counter(tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) for s in specs)
     corpus = f"the {len(specs)}-scene corpus (tile.split = {list(cfg.tile.split)}, tile.seed = {cfg.tile.seed})"
     if not counts["train"]:
         raise ConfigError(f"config key 'tile.split': no scene of {corpus} falls in the train split; "
                           "give train a larger share or add scenes")
-    if cfg.train.val_every and not counts["val"]:
+    if cfg.train.val_every and not counts["val"] and cfg.tile.val_set == "split":
         raise ConfigError(f"config key 'tile.split': no scene of {corpus} falls in the val split, which "
                           f"train.val_every = {cfg.train.val_every} validates on; give val a share, add scenes, "
                           "or set train.val_every = 0")

@@ -85,11 +85,14 @@ def test_model_and_train_errors_name_the_key(override, key):
         load_config(None, [override])
 
 
-def test_pretrain_corpus_is_disjoint_from_the_default_corpus_and_has_every_family():
+def test_pretrain_corpora_are_disjoint_from_the_default_corpus_and_have_their_families():
+    """pretrain.toml: the three original families; broad.toml: every family but the held-out ones."""
     from admc.pipeline.render.scenes import FAMILIES
     from admc.pipeline.render.stage import corpus
 
-    pretrain, default = load_config(REPO / "configs" / "pretrain.toml"), load_config()
-    specs = corpus(pretrain)
-    assert len(specs) >= 100 and {s.family for s in specs} == set(FAMILIES)
-    assert not {(s.family, s.seed) for s in specs} & {(s.family, s.seed) for s in corpus(default)}
+    default = load_config()
+    for name, families in (("pretrain", {"room", "tabletop", "studio"}),
+                           ("broad", set(FAMILIES) - set(default.corpus.held_out_families))):
+        specs = corpus(load_config(REPO / "configs" / f"{name}.toml"))
+        assert len(specs) >= 100 and {s.family for s in specs} == families, name
+        assert not {(s.family, s.seed) for s in specs} & {(s.family, s.seed) for s in corpus(default)}, name

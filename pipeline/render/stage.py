@@ -89,7 +89,7 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
         "resolution": list(spec.resolution), "render_seconds": round(seconds, 4),
         "warmup_seconds": round(compile_seconds, 4),
         "samples_per_second": spp * spec.resolution[0] * spec.resolution[1] / max(seconds, 1e-9),
-        "has_specular": needs.has_specular, "bsdf_types": list(needs.bsdf_types),
+        "constructs": list(spec.constructs), "has_specular": needs.has_specular, "bsdf_types": list(needs.bsdf_types),
         "layers": sorted(layers), "nonfinite": nonfinite, "fp16_clamped": clamped,
     }
     (out_dir / SIDECAR_NAME).write_text(json.dumps(sidecar, indent=2))
@@ -99,11 +99,19 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
 def corpus(cfg: Config, left_out: list[scenes.SceneError] | None = None) -> list[SceneSpec]:
     """Procedural scenes, then the user's XML scenes (a broken one raises, or goes to `left_out`: see xml_corpus)."""
     specs = scenes.procedural_corpus(list(cfg.corpus.families), cfg.corpus.n_scenes, cfg.corpus.seed,
-                                     cfg.render.resolution)
+                                     cfg.render.resolution, cfg.corpus.constructs, cfg.corpus.construct_chance)
     if cfg.corpus.xml_dirs:
         own_film = cfg.corpus.xml_resolution == "film"
         specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), None if own_film else cfg.render.resolution, left_out)
     return specs
+
+
+def ood_corpus(cfg: Config) -> list[SceneSpec]:
+    """The out-of-family set: `eval.ood_scenes_per_family` scenes of each of `eval.ood_families` (held out
+    of training), drawn with `eval.ood_seed`, plain (no training constructs mixed in)."""
+    families = list(cfg.eval.ood_families)
+    return scenes.procedural_corpus(families, cfg.eval.ood_scenes_per_family * len(families), cfg.eval.ood_seed,
+                                    cfg.render.resolution)
 
 
 def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Task]]:

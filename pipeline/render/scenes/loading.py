@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from . import xml_loader
+from .constructs import CONSTRUCTS
 from .families import FAMILIES
 from .plain import Image, Matrix, MeshShape, canonical_bytes, canonicalise
 from .spec import SceneError, SceneSpec
@@ -23,7 +24,10 @@ def plain_description(spec: SceneSpec) -> dict:
     family = FAMILIES.get(spec.family)
     if family is None:
         raise SceneError(f"scene {spec.scene_id!r}: unknown family {spec.family!r}; known: {', '.join(sorted(FAMILIES))}")
-    return canonicalise(family.build(spec.seed, spec.resolution))
+    unknown = [name for name in spec.constructs if name not in CONSTRUCTS]
+    if unknown:
+        raise SceneError(f"scene {spec.scene_id!r}: unknown constructs {unknown}; known: {', '.join(sorted(CONSTRUCTS))}")
+    return canonicalise(family.build(spec.seed, spec.resolution, spec.constructs))
 
 
 def _to_mitsuba(node: Any, name: str = "") -> Any:
@@ -74,12 +78,17 @@ def load_scene(spec: SceneSpec, spp: int = 1):
     """
     if spec.is_xml:
         return xml_loader.load_xml_scene(spec.xml_path, spec.resolution, spp)
-    import mitsuba as mi
-
     try:
-        return mi.load_dict(scene_description(spec), optimize=False)
+        return load_description(plain_description(spec))
     except RuntimeError as error:
         raise SceneError(f"scene {spec.scene_id!r} ({spec.family}, seed {spec.seed}) failed to load: {error}") from error
+
+
+def load_description(plain: dict):
+    """The Mitsuba scene of a plain description (`optimize=False`, see `load_scene`)."""
+    import mitsuba as mi
+
+    return mi.load_dict(_to_mitsuba(canonicalise(plain)), optimize=False)
 
 
 def scene_hash(spec: SceneSpec) -> str:

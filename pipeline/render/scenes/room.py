@@ -17,6 +17,7 @@ from . import materials
 from .geometry import UP, box, planar
 from .meshes import heightfield
 from .plain import MeshShape
+from .constructs import Stage, add_constructs
 from .staging import Layout, exposure, family_rng, new_scene, object_material, place_object, rgb, warm_white
 from .textures import random_colour, sky
 
@@ -145,7 +146,7 @@ def _storage(room: _Room) -> None:
         scene[f"shelf_side_{side + 1}"] = {"type": "cube", "to_world": box([x + side * (half[0] + 0.02), half[1], z], [0.02, half[1], half[2]]), "bsdf": bsdf}
 
 
-def room(seed: int, resolution: tuple[int, int]) -> dict:
+def room(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = ()) -> dict:
     rng = family_rng("room", seed)
     width, depth, height = rng.uniform(4.0, 6.5), rng.uniform(4.0, 6.5), rng.uniform(2.5, 3.2)
     room = _Room(rng, seed % DIFFUSE_ONLY_EVERY == 0, width, depth, height, exposure(rng))
@@ -154,7 +155,7 @@ def room(seed: int, resolution: tuple[int, int]) -> dict:
     room.scene = new_scene(resolution, eye, target, rng.uniform(55.0, 75.0))
     _shell(room)
     _lights(room)
-    table_yaw, _ = _table(room, target[0], target[2])
+    table_yaw, table_height = _table(room, target[0], target[2])
     _storage(room)
 
     for index in range(int(rng.integers(1, 4))):
@@ -171,4 +172,5 @@ def room(seed: int, resolution: tuple[int, int]) -> dict:
         center = [-side * (width / 2 - 0.01), rng.uniform(1.1, 1.5), rng.uniform(-0.3, 0.1) * depth]
         room.scene["wall_mirror"] = {"type": "rectangle", "to_world": planar(center, [side, 0, 0], UP, half, half * rng.uniform(0.8, 1.4)),
                                      "bsdf": materials.material(rng, "mirror")}
-    return room.scene
+    stage = Stage(np.asarray(eye), np.array([target[0], table_height, target[2]]), 0.6, table_height, room.scale)
+    return add_constructs(room.scene, stage, "room", seed, constructs)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import materials
+from .constructs import Stage, add_constructs
 from .geometry import UP, planar
 from .staging import OBJECT_KINDS, exposure, family_rng, new_scene, object_material, place_object, rgb, warm_white
 from .textures import sky
@@ -43,7 +44,7 @@ def _small_light(scene: dict, name: str, rng: np.random.Generator, scale: float,
                        "emitter": {"type": "area", "radiance": radiance}}
 
 
-def studio(seed: int, resolution: tuple[int, int]) -> dict:
+def studio(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = ()) -> dict:
     rng = family_rng("studio", seed)
     scale = exposure(rng)
     diffuse_only = seed % DIFFUSE_ONLY_EVERY == DIFFUSE_ONLY_EVERY - 1
@@ -67,4 +68,4 @@ def studio(seed: int, resolution: tuple[int, int]) -> dict:
         size = rng.uniform(0.1, 0.3)
         x, y, z = rng.uniform(-0.35, 0.35, 3) * (index > 0)
         place_object(scene, f"item_{index}", rng, kind, x, z, y - size, size, object_material(rng, kind, pool))
-    return scene
+    return add_constructs(scene, Stage(eye, np.zeros(3), 0.4, None, scale), "studio", seed, constructs)
