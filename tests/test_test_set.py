@@ -9,6 +9,7 @@ from admc.pipeline.eval_stage import EvalStageError, eval_scenes
 from admc.pipeline.render.scenes import analyse, load_scene, scene_hash
 
 PRETRAIN = Path(__file__).resolve().parents[1] / "configs" / "pretrain.toml"
+BROAD = Path(__file__).resolve().parents[1] / "configs" / "broad.toml"
 
 
 def test_default_test_set_has_eight_scenes_of_every_family():
@@ -17,9 +18,9 @@ def test_default_test_set_has_eight_scenes_of_every_family():
     assert all(families.count(family) >= 8 for family in ("room", "tabletop", "studio"))
 
 
-def test_no_test_scene_is_a_training_scene_of_the_demo_or_the_pretraining_corpus():
+def test_no_test_scene_is_a_training_scene_of_the_demo_or_the_pretraining_corpora():
     test = {scene_hash(spec) for spec in eval_scenes(load_config())}
-    for cfg in (load_config(), load_config(PRETRAIN)):
+    for cfg in (load_config(), load_config(PRETRAIN), load_config(BROAD)):
         trained = {scene_hash(spec) for spec in render.corpus(cfg)} - {scene_hash(s) for s in eval_scenes(cfg)}
         assert not test & trained
 

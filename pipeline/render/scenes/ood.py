@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from . import masks, materials
-from .constructs import Stage, around_target, base_height, direction_above, irradiance, pick_shapes, rewrite_bsdf
+from .constructs import Aim, around_target, base_height, direction_above, irradiance, pick_shapes, rewrite_bsdf, set_bsdf
 from .geometry import UP, box, planar
 from .plain import Image, Matrix
 from .spec import SEEDS_PER_CORPUS, SceneError
@@ -31,33 +31,33 @@ LAYOUTS = ("box", "plinths")
 Z_UP_TO_Y_UP = Matrix(np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]]))
 
 
-def _sunsky(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _sunsky(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     direction = direction_above(rng, 0.4, 1.3)
-    strength = stage.scale * rng.uniform(1.0, 3.0)
+    strength = aim.scale * rng.uniform(1.0, 3.0)
     scene["environment"] = {"type": "sunsky", "to_world": Z_UP_TO_Y_UP, "sun_direction": direction.tolist(),
                             "turbidity": rng.uniform(2.0, 8.0), "albedo": rng.uniform(0.1, 0.5),
                             "sun_scale": strength, "sky_scale": strength}
 
 
-def _beyond(rng: np.random.Generator, stage: Stage, min_elevation: float, max_elevation: float) -> np.ndarray:
+def _beyond(rng: np.random.Generator, aim: Aim, min_elevation: float, max_elevation: float) -> np.ndarray:
     """A direction above the target on the far side from the camera (give or take 60 degrees), so what
     a light there casts falls towards the camera and nothing placed on the way stands in front of it."""
     direction = direction_above(rng, min_elevation, max_elevation)
-    away = (stage.target - np.asarray(stage.eye))[[0, 2]]
+    away = (aim.target - np.asarray(aim.eye))[[0, 2]]
     angle = np.arctan2(away[0], away[1]) + rng.uniform(-1.0, 1.0)
     horizontal = np.hypot(direction[0], direction[2])
     return np.array([horizontal * np.sin(angle), direction[1], horizontal * np.cos(angle)])
 
 
-def _blinds(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _blinds(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     """A directional sun through horizontal slats: shadows as sharp as geometry can make them."""
-    direction = -_beyond(rng, stage, 0.9, 1.3)
-    scene["blinds_sun"] = {"type": "directional", "direction": direction.tolist(), "irradiance": rgb([irradiance(rng, stage)] * 3)}
-    centre = stage.target + direction * rng.uniform(0.4, 0.6) / direction[1]  # 0.4-0.6 m above the target
+    direction = -_beyond(rng, aim, 0.9, 1.3)
+    scene["blinds_sun"] = {"type": "directional", "direction": direction.tolist(), "irradiance": rgb([irradiance(rng, aim)] * 3)}
+    centre = aim.target + direction * rng.uniform(0.4, 0.6) / direction[1]  # 0.4-0.6 m above the target
     across = np.cross(direction, UP)
     across /= np.linalg.norm(across)
-    half_width, count = 1.5 * stage.radius + 0.3, int(rng.integers(5, 12))
-    spacing = 3.0 * stage.radius / count
+    half_width, count = 1.5 * aim.radius + 0.3, int(rng.integers(5, 12))
+    spacing = 3.0 * aim.radius / count
     slat_bsdf = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb(random_colour(rng, value=(0.3, 0.8)))}}
     up = np.cross(across, direction)
     for index in range(count):
@@ -66,39 +66,39 @@ def _blinds(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
         scene[f"blinds_slat_{index}"] = {"type": "rectangle", "to_world": slat, "bsdf": slat_bsdf}
 
 
-def _screen(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _screen(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     """An emitting screen with a picture on it (a TV, a lit stained-glass pane), facing the target."""
-    x, z = around_target(rng, stage)
-    half = rng.uniform(0.3, 0.6) * stage.radius
-    centre = np.array([x, base_height(stage, half) + half * rng.uniform(1.0, 2.0), z])
+    x, z = around_target(rng, aim)
+    half = rng.uniform(0.3, 0.6) * aim.radius
+    centre = np.array([x, base_height(aim, half) + half * rng.uniform(1.0, 2.0), z])
     picture = np.asarray(random_pattern(rng).pixels) / 0.85
-    radiance = irradiance(rng, stage) / (np.pi * (2 * half) ** 2) * np.linalg.norm(centre - stage.target) ** 2 * 3.0
-    to_target, to_eye = stage.target - centre, np.asarray(stage.eye) - centre
+    radiance = irradiance(rng, aim) / (np.pi * (2 * half) ** 2) * np.linalg.norm(centre - aim.target) ** 2 * 3.0
+    to_target, to_eye = aim.target - centre, np.asarray(aim.eye) - centre
     facing = to_target / np.linalg.norm(to_target) + to_eye / np.linalg.norm(to_eye)  # lights the target, seen by the camera
     scene["screen"] = {"type": "rectangle", "to_world": planar(centre, facing, UP, half, half * rng.uniform(0.6, 1.0)),
                        "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": Image(picture * radiance),
                                                                 "filter_type": "nearest"}}}
 
 
-def _brushed(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _brushed(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     for key in pick_shapes(rng, scene, 2):
         along, across = rng.uniform(0.005, 0.05), rng.uniform(0.2, 0.5)
         alpha_u, alpha_v = (along, across) if rng.uniform() < 0.5 else (across, along)
         metal = materials.METALS[int(rng.integers(len(materials.METALS)))]
-        rewrite_bsdf(scene, key, lambda inner: {"type": "roughconductor", "distribution": "ggx", "material": metal,
-                                                 "alpha_u": alpha_u, "alpha_v": alpha_v})
+        set_bsdf(scene, key, {"type": "twosided", "bsdf": {"type": "roughconductor", "distribution": "ggx", "material": metal,
+                                                          "alpha_u": alpha_u, "alpha_v": alpha_v}})
 
 
-def _frosted(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _frosted(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     for index in range(int(rng.integers(1, 3))):
-        size = rng.uniform(0.2, 0.4) * stage.radius
-        x, z = around_target(rng, stage)
-        scene[f"frosted_{index}"] = {"type": "sphere", "center": [x, base_height(stage, size) + size, z], "radius": size,
+        size = rng.uniform(0.2, 0.4) * aim.radius
+        x, z = around_target(rng, aim)
+        scene[f"frosted_{index}"] = {"type": "sphere", "center": [x, base_height(aim, size) + size, z], "radius": size,
                                      "bsdf": {"type": "roughdielectric", "distribution": "ggx", "alpha": rng.uniform(0.05, 0.3),
                                               "int_ior": rng.uniform(1.4, 1.6), "ext_ior": 1.0}}
 
 
-def _patina(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
+def _patina(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     """Paint worn through to metal: a blend of diffuse and rough metal weighted by a texture."""
     for key in pick_shapes(rng, scene, 2):
         weight = np.clip(masks.random_height(rng) * rng.uniform(0.8, 1.5), 0.0, 1.0)
@@ -110,13 +110,13 @@ def _patina(rng: np.random.Generator, scene: dict, stage: Stage) -> None:
             "bsdf_0": paint, "bsdf_1": metal})
 
 
-OOD_CONSTRUCTS: dict[str, Callable[[np.random.Generator, dict, Stage], None]] = {
+OOD_CONSTRUCTS: dict[str, Callable[[np.random.Generator, dict, Aim], None]] = {
     "sunsky": _sunsky, "blinds": _blinds, "screen": _screen, "brushed": _brushed, "frosted": _frosted, "patina": _patina,
 }
 OOD_NAMES = tuple(OOD_CONSTRUCTS)  # in the order scenes lead with them
 
 
-def _box_layout(rng: np.random.Generator, scene: dict, scale: float) -> Stage:
+def _box_layout(rng: np.random.Generator, scene: dict, scale: float) -> Aim:
     """A 1 m box open towards the camera, coloured side walls, a small ceiling light at the front and a
     skylight (a square hole) at the back of the ceiling, which lets a sky or a sun in."""
     white = {"type": "diffuse", "reflectance": rgb([rng.uniform(0.6, 0.8)] * 3)}
@@ -145,10 +145,10 @@ def _box_layout(rng: np.random.Generator, scene: dict, scale: float) -> Stage:
         if spot is not None:
             kind = OBJECT_KINDS[int(rng.integers(len(OBJECT_KINDS)))]
             place_object(scene, f"item_{index}", rng, kind, spot[0], spot[1], 0.0, size, object_material(rng, kind, materials.ALL_KINDS))
-    return Stage(np.array([0.0, 0.5, 1.9]), np.array([0.0, 0.3, 0.0]), 0.35, 0.0, scale)
+    return Aim(np.array([0.0, 0.5, 1.9]), np.array([0.0, 0.3, 0.0]), 0.35, 0.0, scale)
 
 
-def _plinths_layout(rng: np.random.Generator, scene: dict, scale: float) -> Stage:
+def _plinths_layout(rng: np.random.Generator, scene: dict, scale: float) -> Aim:
     """Two to four plinths of different heights on open ground, an object on each, a soft sky."""
     scene["ground"] = {"type": "rectangle", "to_world": planar([0, 0, 0], UP, [0, 0, -1], 10.0, 10.0),
                        "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb(random_colour(rng, value=(0.3, 0.6)))}}}
@@ -162,7 +162,7 @@ def _plinths_layout(rng: np.random.Generator, scene: dict, scale: float) -> Stag
         place_object(scene, f"item_{index}", rng, kind, x, 0.0, height, size, object_material(rng, kind, materials.ALL_KINDS))
     azimuth = rng.uniform(-0.6, 0.6)
     eye = np.array([2.2 * np.sin(azimuth), rng.uniform(0.5, 1.2), 2.2 * np.cos(azimuth)])
-    return Stage(eye, np.array([0.0, 0.3, 0.0]), 0.6, 0.0, scale)
+    return Aim(eye, np.array([0.0, 0.3, 0.0]), 0.6, 0.0, scale)
 
 
 def ood(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = ()) -> dict:
@@ -174,12 +174,12 @@ def ood(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = ()
     scene: dict = {}
     scale = exposure(rng)
     layout = LAYOUTS[index % len(LAYOUTS)]
-    stage = (_box_layout if layout == "box" else _plinths_layout)(rng, scene, scale)
-    scene = new_scene(resolution, stage.eye, stage.target, rng.uniform(35.0, 50.0)) | scene
+    aim = (_box_layout if layout == "box" else _plinths_layout)(rng, scene, scale)
+    scene = new_scene(resolution, aim.eye, aim.target, rng.uniform(35.0, 50.0)) | scene
     lead = OOD_NAMES[(index // len(LAYOUTS)) % len(OOD_NAMES)]
     names = [lead]
     if rng.uniform() < 0.5:
         names.append(OOD_NAMES[int(rng.integers(len(OOD_NAMES)))])
     for name in dict.fromkeys(names):
-        OOD_CONSTRUCTS[name](rng, scene, stage)
+        OOD_CONSTRUCTS[name](rng, scene, aim)
     return scene

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import materials
-from .constructs import Stage, add_constructs, bump_shape, textured_roughness
+from .constructs import Aim, add_constructs, bump_shape, set_bsdf, textured_roughness
 from .meshes import ground_quad
 from .plain import MeshShape
 from .staging import exposure, family_rng, new_scene, object_material, place_object, rgb
@@ -32,8 +32,7 @@ def _subject(rng: np.random.Generator, scene: dict, shape: str, size: float) -> 
         bsdf = textured_roughness(rng)
     else:
         bsdf = object_material(rng, "sphere" if shape == "pedestal" else shape, materials.ALL_KINDS)
-    subject = scene["subject"]
-    scene["subject"] = MeshShape(subject.mesh, bsdf) if isinstance(subject, MeshShape) else dict(subject, bsdf=bsdf)
+    set_bsdf(scene, "subject", bsdf)
     if roll > 0.7:  # a bump or normal map on the subject
         bump_shape(rng, scene, "subject")
 
@@ -52,5 +51,5 @@ def preview(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] 
         {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": checker(rng), "filter_type": "bilinear"}}}
     scene["floor"] = MeshShape(ground_quad(10.0, rng.uniform(10.0, 40.0)), floor)
     _subject(rng, scene, SHAPES[int(rng.integers(len(SHAPES)))], size)
-    stage = Stage(eye, target, 2.0 * size, 0.0, scale)
-    return add_constructs(scene, stage, "preview", seed, constructs)
+    aim = Aim(eye, target, 2.0 * size, 0.0, scale)
+    return add_constructs(scene, aim, "preview", seed, constructs)

@@ -17,7 +17,7 @@ from . import materials
 from .geometry import UP, box, planar
 from .meshes import heightfield
 from .plain import MeshShape
-from .constructs import Stage, add_constructs
+from .constructs import Aim, add_constructs
 from .staging import Layout, exposure, family_rng, new_scene, object_material, place_object, rgb, warm_white
 from .textures import random_colour, sky
 
@@ -172,5 +172,5 @@ def room(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = (
         center = [-side * (width / 2 - 0.01), rng.uniform(1.1, 1.5), rng.uniform(-0.3, 0.1) * depth]
         room.scene["wall_mirror"] = {"type": "rectangle", "to_world": planar(center, [side, 0, 0], UP, half, half * rng.uniform(0.8, 1.4)),
                                      "bsdf": materials.material(rng, "mirror")}
-    stage = Stage(np.asarray(eye), np.array([target[0], table_height, target[2]]), 0.6, table_height, room.scale)
-    return add_constructs(room.scene, stage, "room", seed, constructs)
+    aim = Aim(np.asarray(eye), np.array([target[0], table_height, target[2]]), 0.6, table_height, room.scale)
+    return add_constructs(room.scene, aim, "room", seed, constructs)

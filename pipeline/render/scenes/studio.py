@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import materials
-from .constructs import Stage, add_constructs
+from .constructs import Aim, add_constructs
 from .geometry import UP, planar
 from .staging import OBJECT_KINDS, exposure, family_rng, new_scene, object_material, place_object, rgb, warm_white
 from .textures import sky
@@ -68,4 +68,4 @@ def studio(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] =
         size = rng.uniform(0.1, 0.3)
         x, y, z = rng.uniform(-0.35, 0.35, 3) * (index > 0)
         place_object(scene, f"item_{index}", rng, kind, x, z, y - size, size, object_material(rng, kind, pool))
-    return add_constructs(scene, Stage(eye, np.zeros(3), 0.4, None, scale), "studio", seed, constructs)
+    return add_constructs(scene, Aim(eye, np.zeros(3), 0.4, None, scale), "studio", seed, constructs)

@@ -9,7 +9,7 @@ import numpy as np
 
 from . import materials
 from .geometry import UP, planar
-from .constructs import Stage, add_constructs
+from .constructs import Aim, add_constructs
 from .meshes import ground_quad
 from .plain import MeshShape
 from .staging import OBJECT_KINDS, Layout, exposure, family_rng, new_scene, object_material, place_object, rgb, warm_white
@@ -47,4 +47,4 @@ def tabletop(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...]
             continue
         pool = materials.SPECULAR_KINDS if index == 0 or rng.uniform() < 0.7 else materials.DIFFUSE_KINDS
         place_object(scene, f"item_{index}", rng, kind, spot[0], spot[1], 0.0, size, object_material(rng, kind, pool))
-    return add_constructs(scene, Stage(np.asarray(eye), np.asarray(target), 0.5, 0.0, scale), "tabletop", seed, constructs)
+    return add_constructs(scene, Aim(np.asarray(eye), np.asarray(target), 0.5, 0.0, scale), "tabletop", seed, constructs)
