@@ -6,7 +6,7 @@ import pytest
 
 from admc.pipeline.render import integrator
 from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, SceneError, SceneSpec, procedural_corpus, scene_hash
-from admc.pipeline.render.scenes.constructs import Stage, choose_constructs
+from admc.pipeline.render.scenes.constructs import Aim, choose_constructs
 from admc.pipeline.render.scenes.geometry import UP, look_at, planar
 from admc.pipeline.render.scenes.loading import load_description, plain_description
 from admc.pipeline.render.scenes.plain import Image
@@ -16,7 +16,7 @@ from admc.pipeline.render.scenes.textures import checker
 EYE, TARGET = np.array([0.0, 1.2, 1.6]), np.array([0.0, 0.15, 0.0])
 
 
-def probe(floor=None, environment=None, ball=True) -> tuple[dict, Stage]:
+def probe(floor=None, environment=None, ball=True) -> tuple[dict, Aim]:
     scene = new_scene((32, 32), EYE, TARGET, 45.0)
     scene["floor"] = {"type": "rectangle", "to_world": planar([0, 0, 0], UP, [0, 0, -1], 1.5, 1.5),
                       "bsdf": floor or {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb([0.5] * 3)}}}
@@ -25,12 +25,12 @@ def probe(floor=None, environment=None, ball=True) -> tuple[dict, Stage]:
                          "bsdf": {"type": "diffuse", "reflectance": rgb([0.6, 0.5, 0.4])}}
     if environment is not None:
         scene["environment"] = environment
-    return scene, Stage(EYE, TARGET, 0.4, 0.0, 1.0)
+    return scene, Aim(EYE, TARGET, 0.4, 0.0, 1.0)
 
 
 def with_construct(name: str, seed: int = 0, **probe_args) -> dict:
-    scene, stage = probe(**probe_args)
-    CONSTRUCTS[name].add(np.random.default_rng(seed), scene, stage)
+    scene, aim = probe(**probe_args)
+    CONSTRUCTS[name].add(np.random.default_rng(seed), scene, aim)
     return scene
 
 
