@@ -1,11 +1,13 @@
-"""Print the full-image denoiser's time per image in float32 and bf16 side by side: both branches,
-random weights (speed does not depend on them), the paper's and the default (small) generator; and,
-on the same image and device, the baselines the evaluation compares against (Intel OIDN; NVIDIA
-OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
+"""Print the full-image denoiser's time per image in every engine and precision side by side: both
+branches, random weights (speed does not depend on them), the paper's and the default (small) generator;
+and, on the same image and device, the baselines the evaluation compares against (Intel OIDN; NVIDIA
+OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN. Last, for the default
+engine (eval.engine of configs/default.toml) in its default precision, the lines
+`admc/oidn time ratio: X` (small) and `admc+oidn/oidn time ratio: X` (small+oidn) against OIDN `high`.
 
     .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-unet]
-        [--precisions float32 bfloat16] [--baselines oidn optix] [--device cpu|cuda] [--tile N]
-        [--repeats 3] [--warmup 1] [--threads N] [--compile]
+        [--engines torch onnxruntime openvino] [--precisions float32 bfloat16] [--baselines oidn optix]
+        [--device cpu|cuda] [--tile N] [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
@@ -13,8 +15,9 @@ model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-
 is one FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with
 the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
-figures are medians over --repeats. bfloat16 is autocast (the denoiser's default on CUDA and on CPUs
-with AVX512-BF16 or AMX). By default the image runs in the denoiser's own tiles with the
+figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
+OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and
+the ONNX engines run on a CPU only (model/engines.py). By default the image runs in the denoiser's own tiles with the
 receptive-field halo (tiling.default_tile: 320 on a CPU, 512 on a GPU, at least 8 halos), as
 `admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
 2-core CPU is about twice as slow at 1280x720 (whole-image convs leave the caches).
@@ -29,11 +32,14 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from admc.common.layout import ENGINES
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.engines import default_precision
 from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.backbones import build_generator
-from admc.model.precision import PRECISIONS, resolve_precision
+from admc.model.precision import PRECISIONS, precision_name
 from admc.model.training.settings import paper_settings, small_settings
+from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
                                                 time_denoiser)
 
@@ -43,6 +49,10 @@ CONFIGS = {
     "small+oidn": replace(small_settings()[0], base="oidn").generator_config(),
     "small-unet": replace(small_settings()[0], backbone="unet").generator_config(),
 }
+
+
+RATIO_LINES = {"small": "admc/oidn", "small+oidn": "admc+oidn/oidn"}
+"""The default model's two bases and the label of their time ratio to OIDN."""
 
 
 def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
@@ -58,15 +68,26 @@ def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
     }
 
 
-def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser], args: argparse.Namespace) -> None:
-    """Time admc (both branches) in each precision and the baselines, taking turns run by run."""
+def runs_here(engine: str, precision: str, device: str) -> bool:
+    """Whether `engine` runs in `precision` on `device` (model/engines.check_engine's rules)."""
+    if engine == "torch":
+        return True
+    return device == "cpu" and (engine == "openvino" or precision == "float32")
+
+
+def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser],
+          args: argparse.Namespace) -> dict[str, float]:
+    """Time admc (both branches) in each engine and precision and the baselines, taking turns run by run;
+    returns the median total seconds per "engine precision" and per baseline."""
     torch.manual_seed(0)
     diffuse, specular = build_generator(CONFIGS[name]), build_generator(CONFIGS[name])
     height, width = layers["diffuse"].shape[:2]
     tile = max(height, width) if args.tile == 0 else args.tile
-    # a copy of the networks per precision: the denoiser moves them to its memory layout in place
-    denoisers = {p: FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device, tile=tile,
-                                      dtype=PRECISIONS[p], compile=args.compile) for p in args.precisions}
+    # a copy of the networks per denoiser: it moves them to its memory layout in place
+    denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device,
+                                               tile=tile, dtype=PRECISIONS[p], compile=args.compile and e == "torch",
+                                               engine=e)
+                 for e in args.engines for p in args.precisions if runs_here(e, p, args.device)}
     for precision, denoiser in denoisers.items():
         first = denoiser(layers).seconds
         for _ in range(args.warmup - 1):
@@ -87,18 +108,19 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
         network = statistics.median(r.network_seconds for r in results) * 1e3
         totals[precision] = statistics.median(r.seconds for r in results)
         denoiser = denoisers[precision]
-        print(f"{name:6s} {precision:8s} {width}x{height} tile {denoiser.tile} ({results[0].tiles} per branch, halo "
+        print(f"{name:6s} {precision:20s} {width}x{height} tile {denoiser.tile} ({results[0].tiles} per branch, halo "
               f"{denoiser.overlap}, receptive radius {receptive_radius(diffuse)}): network "
               f"{network:9.1f} ms/image, total {totals[precision] * 1e3:9.1f} ms/image  "
               f"[{', '.join(results[0].branches)}]", flush=True)
-    base = args.precisions[0]
+    base = next(iter(totals))
     if len(totals) > 1:
         print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {totals[base] / s:.2f}x"
                                                                for p, s in totals.items() if p != base), flush=True)
     for b, seconds in baseline_runs.items():
-        median = statistics.median(seconds)
-        print(f"{b:6s} {width}x{height}: total {median * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
-              f"{name} / {b}: " + ", ".join(f"{p} {s / median:.2f}x" for p, s in totals.items()), flush=True)
+        totals[b] = statistics.median(seconds)
+        print(f"{b:6s} {width}x{height}: total {totals[b] * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
+              f"{name} / {b}: " + ", ".join(f"{p} {totals[p] / totals[b]:.2f}x" for p in denoisers), flush=True)
+    return totals
 
 
 def make_baselines(names: list[str], device: str, width: int, height: int) -> dict[str, Denoiser]:
@@ -117,6 +139,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--engines", nargs="+", default=list(ENGINES), choices=list(ENGINES))
     parser.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=list(PRECISIONS))
     parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
                         help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
@@ -136,13 +159,19 @@ def main() -> None:
     device = torch.device(args.device)
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"cpu, {torch.get_num_threads()} threads")
-    default = [p for p, dtype in PRECISIONS.items() if dtype == resolve_precision("auto", device)][0]
+    engine = load_config(None, []).eval.engine
+    default = f"{engine} {precision_name(default_precision(engine, device))}"
     print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
           f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")
     layers = synthetic_layers(height, width)
     baselines = make_baselines(args.baselines, args.device, width, height)
+    ratios = {}
     for name in args.configs:
-        bench(name, layers, baselines, args)
+        totals = bench(name, layers, baselines, args)
+        if name in RATIO_LINES and default in totals and "oidn" in totals:
+            ratios[RATIO_LINES[name]] = totals[default] / totals["oidn"]
+    for label, ratio in ratios.items():  # the default model and engine against OIDN high in this same run
+        print(f"{label} time ratio: {ratio:.2f}  ({default}, {width}x{height})")
 
 if __name__ == "__main__":
     main()
