@@ -8,6 +8,8 @@ import math
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from admc.common.metrics import METRICS, NONFINITE_RULE, reference_floor
 from admc.pipeline.evaluation.baselines import cpu_description
 from admc.pipeline.evaluation.plot import plot_error_vs_time
@@ -91,7 +93,34 @@ def equal_time(result: EvalResult) -> list[dict]:
     return rows
 
 
-def _equal_time_md(rows: list[dict], reference_cost: dict | None, out_dir: Path) -> Path:
+def error_at(curve: dict[int, tuple[float, float]], seconds: float) -> float | None:
+    """The relMSE of a (spp -> (mean seconds, mean relMSE)) curve at `seconds`, interpolated linearly in log
+    time and log error between its two neighbouring points (straight as in the log-log plot); None outside
+    the curve's time range, where it would be a guess."""
+    points = sorted(curve.values())
+    times = [t for t, _ in points]
+    if not times[0] <= seconds <= times[-1]:
+        return None
+    logs = np.log([max(e, 1e-30) for _, e in points])
+    return float(np.exp(np.interp(math.log(seconds), np.log(times), logs)))
+
+
+def equal_time_between(curves: dict[str, dict[int, tuple[float, float]]]) -> list[dict]:
+    """For each denoiser's point (spp), every other denoiser's relMSE at the same mean total time (error_at),
+    from their mean curves (records.mean_curve): who is better at equal cost, in both directions."""
+    rows = []
+    for method, curve in curves.items():
+        for spp, (seconds, relmse) in curve.items():
+            for other, other_curve in curves.items():
+                if other == method:
+                    continue
+                theirs = error_at(other_curve, seconds)
+                rows.append({"method": method, "spp": spp, "seconds": seconds, "relmse": relmse, "other": other,
+                             "other_relmse": theirs, "ratio": None if theirs is None else relmse / theirs})
+    return rows
+
+
+def _equal_time_md(rows: list[dict], between: list[dict], reference_cost: dict | None, out_dir: Path) -> Path:
     lines = ["# Equal time: denoised against the raw path tracer", "",
              "For each denoiser and input spp, the raw path tracer's spp whose mean cost is nearest "
              "(on a log scale) to the denoiser's mean cost (render + denoise), and whether the denoised "
@@ -105,14 +134,29 @@ def _equal_time_md(rows: list[dict], reference_cost: dict | None, out_dir: Path)
         lines.append(f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['raw_spp']} | "
                      f"{r['raw_seconds']:.4g} | {r['raw_relmse']:.4g} | {'yes' if r['beats_raw'] else 'no'} | "
                      f"{r['scenes_won']}/{r['scenes']} |")
+    lines += ["", "# Equal time: denoiser against denoiser", "",
+              "For each denoiser and input spp, every other denoiser's relMSE at the same mean cost (render + "
+              "denoise), interpolated on its error-against-time curve (linearly in log time and log relMSE); "
+              "\"outside\" where that cost lies outside its curve. Ratio below 1: the first denoiser is better "
+              "at equal time.", "",
+              "| denoiser | spp | seconds | relMSE | other | other's relMSE at these seconds | ratio |",
+              "|---|---|---|---|---|---|---|"]
+    for r in between:
+        theirs, ratio = ("outside", "–") if r["other_relmse"] is None else (f"{r['other_relmse']:.4g}",
+                                                                           f"{r['ratio']:.3f}")
+        lines.append(f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['other']} | "
+                     f"{theirs} | {ratio} |")
     return _write_text(out_dir / "equal_time.md", "\n".join(lines) + "\n")
 
 
 def write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int) -> dict[str, Path]:
     equal = equal_time(result)
+    between = equal_time_between({m: mean_curve([r for r in result.records if r.method == m])
+                                  for m in denoising_methods(result)})
     files = {"per_image_csv": _write_per_image_csv(result, out_dir), "table1_csv": _table_csv(result, out_dir),
              "table1_md": _table_md(result, out_dir), "error_vs_time": plot_error_vs_time(result, out_dir),
-             "equal_time": _equal_time_md(equal, result.reference_cost, out_dir), "results_json": out_dir / "results.json"}
+             "equal_time": _equal_time_md(equal, between, result.reference_cost, out_dir),
+             "results_json": out_dir / "results.json"}
     write_json(files["results_json"], {
         "metrics": {m.key: {"label": m.label, "lower_is_better": m.lower_is_better, "definition": m.definition}
                     for m in METRICS},
@@ -130,6 +174,7 @@ def write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int) 
         "images": [_record_dict(r, out_dir) for r in result.records],
         "path_tracer": [_record_dict(r, out_dir) for r in result.path_tracer],
         "equal_time": equal,
+        "equal_time_between_denoisers": between,
         "reference_cost": result.reference_cost,
         "scenes": [{"scene_id": s.scene_id, "reference": str(s.reference.relative_to(out_dir)),
                     "inputs": {str(k): str(v.relative_to(out_dir)) for k, v in s.inputs.items()},
