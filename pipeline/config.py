@@ -126,6 +126,7 @@ class EvalConfig:
     ensemble: int
     dark_pass: bool
     engine: str
+    also_ensemble_dark: bool
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",

@@ -88,13 +88,27 @@ def default_models(cfg: Config) -> list[Path]:
     return paths
 
 
+ENSEMBLE_DARK = (4, True)
+"""The costly settings eval.also_ensemble_dark adds a row for: the 4-way ensemble and the dark pass."""
+ENSEMBLE_DARK_SUFFIX = " ens4+dark"
+
+
 def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "auto") -> list[Denoiser]:
     """The trained models, once per weights file (default: `default_models`), each named as its Table 1
-    column."""
+    column; with eval.also_ensemble_dark each again with the 4-way ensemble and the dark pass, as its own
+    row with its own time (unless eval.ensemble and eval.dark_pass are those already)."""
     named = named_weights(weights) if weights else [(None, path) for path in default_models(cfg)]
-    return [load_model(cfg, path, device, name=name, ensemble=cfg.eval.ensemble, dark_pass=cfg.eval.dark_pass,
-                       engine=cfg.eval.engine)
-            for name, path in named]
+    settings = [(cfg.eval.ensemble, cfg.eval.dark_pass, "")]
+    if cfg.eval.also_ensemble_dark and settings[0][:2] != ENSEMBLE_DARK:
+        settings.append((*ENSEMBLE_DARK, ENSEMBLE_DARK_SUFFIX))
+    models = []
+    for name, path in named:
+        for ensemble, dark_pass, suffix in settings:
+            model = load_model(cfg, path, device, name=name, ensemble=ensemble, dark_pass=dark_pass,
+                               engine=cfg.eval.engine)
+            model.name += suffix
+            models.append(model)
+    return models
 
 
 class ReportFigures:
