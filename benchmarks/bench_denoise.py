@@ -34,7 +34,7 @@ import torch
 
 from admc.common.layout import ENGINES
 from admc.model.inference.denoiser import FullImageDenoiser
-from admc.model.inference.engines import default_precision
+from admc.model.inference.engines import default_precision, resolve_engine
 from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.backbones import build_generator
 from admc.model.precision import PRECISIONS, precision_name
@@ -159,7 +159,7 @@ def main() -> None:
     device = torch.device(args.device)
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"cpu, {torch.get_num_threads()} threads")
-    engine = load_config(None, []).eval.engine
+    engine = resolve_engine(load_config(None, []).eval.engine, device)
     default = f"{engine} {precision_name(default_precision(engine, device))}"
     print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
           f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")

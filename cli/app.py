@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from admc.common.layout import ENGINES, ENSEMBLES
+from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
 from admc.errors import AdmcError
 from admc.pipeline import config as config_mod
 
@@ -209,9 +209,10 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
                                                          "them from there (eval's default): up to twice the "
                                                          "time.")] = False,
-            engine: Annotated[Optional[str], typer.Option(help="What runs the networks: torch | onnxruntime | "
-                                                               "openvino (CPU only; docs/engines.md). Default: "
-                                                               "eval.engine of the config.")] = None,
+            engine: Annotated[Optional[str], typer.Option(help="What runs the networks: auto (openvino on a CPU, "
+                                                               "torch on a GPU) | torch | onnxruntime | openvino "
+                                                               "(docs/engines.md). Default: the config's "
+                                                               "eval.engine.")] = None,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.train_stage import load_model
@@ -222,8 +223,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
         raise typer.BadParameter("--output names one file; give one input, or leave it out")
     if ensemble not in ENSEMBLES:
         raise typer.BadParameter(f"--ensemble must be one of {', '.join(map(str, ENSEMBLES))}, got {ensemble}")
-    if engine is not None and engine not in ENGINES:
-        raise typer.BadParameter(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if engine is not None and engine not in ENGINE_CHOICES:
+        raise typer.BadParameter(f"--engine must be one of {', '.join(ENGINE_CHOICES)}, got {engine!r}")
     cfg, model, written, failed = _load(config, set_), None, [], []
     for path in inputs:
         try:

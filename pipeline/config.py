@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from admc.common.layout import ENGINES, ENSEMBLES
+from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
 from admc.errors import AdmcError
 from admc.model.nets.critic import DOWNSAMPLING
 from admc.model.nets.settings import ModelSettings
@@ -149,7 +149,8 @@ class EvalConfig:
         _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
         _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
         _require(self.ensemble in ENSEMBLES, "eval.ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
-        _require(self.engine in ENGINES, "eval.engine", f"must be one of {', '.join(ENGINES)}, got {self.engine!r}")
+        _require(self.engine in ENGINE_CHOICES, "eval.engine",
+                 f"must be one of {', '.join(ENGINE_CHOICES)}, got {self.engine!r}")
 
 
 @dataclass(frozen=True)

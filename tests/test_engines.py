@@ -62,10 +62,15 @@ def test_openvino_in_the_precision_it_picks_gives_the_torch_result():
 
 
 @pytest.mark.parametrize("engine,options,message", [
-    ("tensorrt", {}, "engine 'tensorrt': not one of torch, onnxruntime, openvino"),
+    ("tensorrt", {}, "engine 'tensorrt': not one of auto, torch, onnxruntime, openvino"),
     ("onnxruntime", {"dtype": torch.bfloat16}, "engine 'onnxruntime' runs float32 only"),
     ("openvino", {"compile": True}, "compile is torch.compile"),
 ])
 def test_what_an_engine_cannot_do_is_refused(engine, options, message):
     with pytest.raises(ValueError, match=message):
         load_denoiser(SHIPPED, engine=engine, **options)
+
+
+def test_auto_is_openvino_on_a_cpu():
+    denoiser = load_denoiser(SHIPPED, engine="auto")
+    assert denoiser.engine == "openvino" and isinstance(denoiser.generators["specular"], OnnxGenerator)

@@ -11,6 +11,8 @@ ENSEMBLES = (1, 2, 4, 8)
 """How many symmetries of an input a denoiser may average its outputs over (model/symmetry.py)."""
 ENGINES = ("torch", "onnxruntime", "openvino")
 """What may run a denoiser's networks (model/inference/engines.py): torch, or their ONNX graphs on a CPU."""
+ENGINE_CHOICES = ("auto", *ENGINES)
+"""What a user may ask for: auto picks by device (engines.resolve_engine)."""
 
 FEATURE_CHANNELS = ("normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B")
 """The feature channels in the authors' order: normal(3), depth(1), albedo(3)."""

@@ -36,12 +36,9 @@ from ..transforms import (
     specular_forward,
     specular_inverse,
 )
-from .engines import check_engine, default_precision, onnx_generators
-from .exposure import DARK_GAIN, dark_weights, exposure_gain
+from .engines import check_engine, default_precision, onnx_generators, resolve_engine
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .oidn_base import oidn_bases
-from .oidn_base import oidn_bases
-from .tiling import default_tile, receptive_radius, run_tiled
 from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
@@ -117,7 +114,8 @@ class FullImageDenoiser:
     `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
     (symmetry.py), at that many times the network time. `engine` runs the generators' forward passes:
     "torch" (the reference), or on a CPU their exported ONNX graphs in "onnxruntime" (float32) or
-    "openvino" (`dtype` as for torch: its INFERENCE_PRECISION_HINT); everything around them is the same.
+    "openvino" (`dtype` as for torch: its INFERENCE_PRECISION_HINT); "auto" is openvino on a CPU and torch
+    on a GPU (engines.resolve_engine). Everything around the networks is the same in every engine.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
@@ -133,6 +131,7 @@ class FullImageDenoiser:
         self.torch_device = torch.device(device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
+        engine = resolve_engine(engine, self.torch_device)
         self.dtype = dtype or default_precision(engine, self.torch_device)
         check_engine(engine, self.torch_device, self.dtype)
         if compile and engine != "torch":

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from admc.common.layout import ENGINES
+from admc.common.layout import ENGINE_CHOICES, ENGINES
 from admc.errors import AdmcError
 
 from ..precision import resolve_precision
@@ -25,11 +25,19 @@ class EngineError(AdmcError, ValueError):
     """An engine that does not exist, is not installed, or cannot run as asked (device, precision)."""
 
 
+def resolve_engine(name: str, device: torch.device) -> str:
+    """The engine `name` asks for on `device`: "auto" is OpenVINO on a CPU (the fastest there, at torch's
+    scores: docs/engines.md) and torch on a GPU."""
+    if name == "auto":
+        return "openvino" if device.type == "cpu" else "torch"
+    return name
+
+
 def check_engine(engine: str, device: torch.device, dtype: torch.dtype) -> None:
     """Refuse what an engine cannot do: an unknown name, a GPU for the CPU engines, bf16 in ONNX Runtime
     (its CPU kernels have no bf16 convolutions)."""
     if engine not in ENGINES:
-        raise EngineError(f"engine {engine!r}: not one of {', '.join(ENGINES)}")
+        raise EngineError(f"engine {engine!r}: not one of {', '.join(ENGINE_CHOICES)}")
     if engine != "torch" and device.type != "cpu":
         raise EngineError(f"engine {engine!r} runs on the CPU only; device {device} needs engine 'torch'")
     if engine == "onnxruntime" and dtype != torch.float32:
