@@ -79,6 +79,7 @@ def test_model_and_train_sections_match_the_settings_factories():
     ("train.ssim_weight=-0.5", "train.ssim_weight"),
     ("train.select_metric='ssim'", "train.select_metric"),
     ("eval.ensemble=3", "eval.ensemble"),
+    ("eval.engine='tensorrt'", "eval.engine"),
 ])
 def test_model_and_train_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -74,6 +74,16 @@ def test_denoise_output_naming_a_directory(tmp_path):
     assert list(folder.iterdir()) == [] and not list(tmp_path.glob(".*tmp*"))
 
 
+def test_denoise_with_an_engine_not_offered(tmp_path):
+    frame = _oidn_style_input(tmp_path)
+    refused(run("denoise", str(frame), "--engine", "tensorrt", "--weights", str(SHIPPED)),
+            "--engine must be one of", "got 'tensorrt'")
+    assert not (tmp_path / "frame.denoised.exr").exists()
+    out = run("denoise", str(frame), "--engine", "onnxruntime", "--weights", str(SHIPPED))
+    assert out.returncode == 0 and "onnxruntime float32" in out.stdout, out.stderr  # the engine it ran in
+    assert (tmp_path / "frame.denoised.exr").is_file()
+
+
 def test_denoise_with_an_ensemble_size_not_offered(tmp_path):
     frame = _oidn_style_input(tmp_path)
     out = run("denoise", str(frame), "--ensemble", "3", "--weights", str(SHIPPED))
