@@ -34,6 +34,8 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
     html = outcome.report.read_text()
     assert outcome.report.name == "index.html" and "oidn" in html and "data:image/png;base64," in html
     assert html.count("Table 1") == 1, "one heading for the table (the Markdown title line is left out)"
+    assert "HDR-FLIP ↓ Avg." in html and "<dt>HDR-FLIP</dt><dd>HDR-FLIP (Andersson" in html  # column, definition
+    assert all(0.0 <= row["average"]["hdr_flip"] <= 1.0 for row in results["table"])
     why_no_optix = optix_unavailable_reason()
     if why_no_optix is None:  # a CUDA machine: OptiX is in every table
         assert methods == {"noisy", "oidn", "optix"} and results["not_run"] == {}

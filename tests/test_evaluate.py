@@ -7,6 +7,7 @@ import shutil
 import weakref
 from collections import defaultdict
 
+import flip_evaluator
 import numpy as np
 import pyoidn
 import pytest
@@ -98,12 +99,15 @@ def test_writes_every_output(evaluated):
     assert doc["timing"]["repeats"] == 1 and len(doc["images"]) == 8 and len(doc["path_tracer"]) == 4
     md = (out / "table1.md").read_text()
     assert "B.P." in md and "rtol" in md and "cpu (" in md and "(ref^2 + 0.01)" in md
+    assert "| HDR-FLIP ↓ Avg. | HDR-FLIP ↓ B.P. |" in md and "**HDR-FLIP**: HDR-FLIP (Andersson" in md
     # the noisy-input row is the raw path tracer itself, so equal time compares only denoisers to it
     assert {row["method"] for row in doc["equal_time"]} == {"oidn"}
     equal_md = (out / "equal_time.md").read_text()
     assert equal_md.count("\n| oidn |") == 2 and "\n| noisy |" not in equal_md
     per_image = _read_table(out / "per_image.csv")
     assert len(per_image) == 12 and {r["method"] for r in per_image} == {"path tracer", "noisy", "oidn"}
+    assert all(0.0 <= float(r["hdr_flip"]) <= 1.0 for r in per_image)
+    assert all(0.0 <= image["hdr_flip"] <= 1.0 for image in doc["images"])
     for scene in result.scenes:
         assert read_image(scene.reference).shape == (32, 32, 3)
         assert set(scene.inputs) == {2, 4} and set(scene.outputs[2]) == {"noisy", "oidn"}
@@ -208,14 +212,17 @@ def test_best_percent_splits_ties():
 
 
 def _independent_scores(image, ref):
-    """The three metrics written out again from their definitions, SSIM/PSNR by scikit-image."""
+    """The metrics written out again from their definitions, SSIM/PSNR by scikit-image, HDR-FLIP by NVIDIA's
+    package with its own exposure range (these references are lit in most pixels)."""
     a, b = to_ldr(image), to_ldr(ref)
     image, ref = image.astype(np.float64), ref.astype(np.float64)
     return {"one_minus_ssim": 1 - structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
                                                         use_sample_covariance=False, channel_axis=-1,
                                                         data_range=255),
             "psnr": min(peak_signal_noise_ratio(b, a, data_range=255), 100.0),
-            "relmse": float(np.mean((image - ref) ** 2 / (ref ** 2 + 0.01)))}
+            "relmse": float(np.mean((image - ref) ** 2 / (ref ** 2 + 0.01))),
+            "hdr_flip": flip_evaluator.evaluate(np.maximum(ref, 0).astype(np.float32),
+                                                np.maximum(image, 0).astype(np.float32), "HDR")[1]}
 
 
 def test_table_matches_independent_recomputation(renders, evaluated):
@@ -246,6 +253,7 @@ def test_oidn_beats_noisy_input_at_lowest_spp(evaluated):
     row = {r.method: r for r in result.table if r.spp == 2}
     assert row["oidn"].average["relmse"] < 0.5 * row["noisy"].average["relmse"]
     assert row["oidn"].best_percent["relmse"] == 100.0
+    assert row["oidn"].average["hdr_flip"] < row["noisy"].average["hdr_flip"]
     noisy = {r.scene_id: r.relmse for r in result.records if r.spp == 2 and r.method == "noisy"}
     for r in result.records:
         if r.spp == 2 and r.method == "oidn":

@@ -1,8 +1,10 @@
 """Metrics: cross-checked against scikit-image, hand-computed cases, odd sizes and non-finite input."""
 import math
 
+import flip_evaluator
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from admc.common import metrics
@@ -70,7 +72,9 @@ def test_odd_sizes_give_finite_scores(shape):
     scores = metrics.score(x, ref)
     assert all(math.isfinite(v) for v in scores.values())
     assert 0.0 < scores["one_minus_ssim"] < 2.0
-    assert metrics.score(ref, ref) == {"one_minus_ssim": pytest.approx(0.0, abs=1e-12), "psnr": 100.0, "relmse": 0.0}
+    assert 0.0 < scores["hdr_flip"] < 1.0
+    assert metrics.score(ref, ref) == {"one_minus_ssim": pytest.approx(0.0, abs=1e-12), "psnr": 100.0, "relmse": 0.0,
+                                       "hdr_flip": 0.0}
 
 
 def test_nonfinite_values_score_as_zero_and_are_counted():
@@ -93,11 +97,53 @@ def test_mismatched_shapes_raise():
 
 def test_metric_table_carries_definitions_and_directions():
     by_key = {m.key: m for m in metrics.METRICS}
-    assert list(by_key) == ["one_minus_ssim", "psnr", "relmse"]
+    assert list(by_key) == ["one_minus_ssim", "psnr", "relmse", "hdr_flip"]
     assert by_key["psnr"].lower_is_better is False
     assert by_key["relmse"].lower_is_better and by_key["one_minus_ssim"].lower_is_better
     assert "0.5" in by_key["relmse"].definition and "100 dB" in by_key["psnr"].definition
     assert "sigma 1.5" in by_key["one_minus_ssim"].definition
+    assert by_key["hdr_flip"].lower_is_better and "ACES" in by_key["hdr_flip"].definition
+
+
+def _stripes(width=128, height=64, period=32, dark=0.5) -> np.ndarray:
+    """Vertical lit stripes on a dimmer ground: a texture a projector light would cast."""
+    lit = (np.arange(width) // (period // 2)) % 2 == 0
+    return np.broadcast_to(np.where(lit, 1.0, dark)[None, :, None], (height, width, 3)).astype(np.float32).copy()
+
+
+def test_hdr_flip_sees_a_smeared_pattern_that_relmse_ranks_better_than_noise():
+    """The stripes smeared into soft blobs (a Gaussian of 6 pixels across them) against the same stripes
+    with 27 % multiplicative noise: relMSE calls the noisy image worse, HDR-FLIP the smeared one."""
+    ref = _stripes()
+    smeared = gaussian_filter(ref, (0, 6.0, 0), mode="wrap").astype(np.float32)
+    noisy = (ref * (1 + 0.27 * np.random.default_rng(0).normal(size=ref.shape))).astype(np.float32)
+    assert metrics.relmse(noisy, ref) > metrics.relmse(smeared, ref)
+    assert metrics.hdr_flip(smeared, ref) > 1.1 * metrics.hdr_flip(noisy, ref)
+    assert metrics.hdr_flip(ref, ref) == 0.0
+
+
+def test_hdr_flip_is_flips_own_mean_error_and_exposure_range_on_an_ordinary_image():
+    x, ref = _pair((40, 56, 3), seed=11, noise=0.1)
+    x = np.maximum(x, 0.0)
+    _, mean, used = flip_evaluator.evaluate(ref, x, "HDR", applyMagma=False)
+    assert metrics.hdr_flip(x, ref) == mean
+    luminance = ref.reshape(-1, 3) @ metrics.FLIP_LUMINANCE
+    assert used["startExposure"] == pytest.approx(metrics._flip_white_exposure() - np.log2(luminance.max()), abs=1e-5)
+
+
+def test_hdr_flip_of_a_mostly_black_reference_is_not_zero():
+    """FLIP's own exposure range ends at the median luminance: infinite when most of the reference is black
+    (a small object on a black background), and every image would score 0."""
+    ref = _stripes()
+    ref[:, :80] = 0.0
+    x = ref * 1.5
+    _, mean, used = flip_evaluator.evaluate(ref, x, "HDR", applyMagma=False)
+    assert mean == 0.0 and not np.isfinite(used["stopExposure"])  # why the rule exists
+    assert metrics.hdr_flip(x, ref) > 0.05
+    assert metrics.hdr_flip(ref, ref) == 0.0
+    black = np.zeros_like(ref)
+    assert metrics.hdr_flip(ref, black) > 0.2 and metrics.hdr_flip(black, ref) > 0.2  # 38 % of it is lit
+    assert metrics.hdr_flip(black, black) == 0.0
 
 
 def _batch(seed=0, shape=(9, 7, 3)):

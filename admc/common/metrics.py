@@ -6,14 +6,17 @@ Non-finite values are replaced by 0 first (NONFINITE_RULE), so a denoiser that e
 
 The evaluation scores NumPy images; training's validation scores batches of tensors. `relmse_torch`,
 `psnr_torch` and `one_minus_ssim_torch` are the same definitions per sample of an (N, C, H, W) batch, side by side with the
-NumPy ones so they cannot drift apart (tests/test_metrics.py compares them).
+NumPy ones so they cannot drift apart (tests/test_metrics.py compares them). HDR-FLIP has no twin and
+validation leaves it out: NVIDIA's implementation costs ~25x SSIM's time (benchmarks/bench_metrics.py).
 """
 from __future__ import annotations
 
+import functools
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import flip_evaluator
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -189,6 +192,57 @@ def one_minus_ssim_torch(x: Tensor, ref: Tensor) -> Tensor:
     return 1.0 - ssim_map_torch(a, b).mean(dim=(2, 3)).mean(1)
 
 
+FLIP_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # linear sRGB to luminance Y, as FLIP computes it
+
+
+def hdr_flip(x: np.ndarray, ref: np.ndarray) -> float:
+    """HDR-FLIP (Andersson et al. 2021; NVIDIA's `flip-evaluator` with its defaults): the mean over pixels
+    of the FLIP error map between ref and x, both linear HDR radiance with negatives clipped to 0.
+    LDR-FLIP models how visible a difference is to a viewer at 67 pixels per degree (colour difference
+    after contrast-sensitivity filtering, plus edge and point features); HDR-FLIP computes it on both
+    images tone mapped with ACES at exposures from log2(m / max Y) to log2(m / median Y), about a stop
+    apart (Y: the reference's luminance, m: the value ACES maps to 0.85), and keeps each pixel's largest
+    error. Where half the reference or more is black, the median is taken over its lit pixels (FLIP's
+    own range would be infinite and score every image 0); a black reference takes the range from x,
+    and two black images score 0.
+    In [0, 1]; lower is better. It sees what relMSE under-weights: a lit pattern smeared into soft
+    blobs costs its edges everywhere, while fine noise around the right mean is partly masked.
+    """
+    _check_pair(x, ref)
+    if np.shape(x)[2] != 3:
+        raise ValueError(f"HDR-FLIP compares RGB images, got {np.shape(x)[2]} channels")
+    x, ref = (np.ascontiguousarray(np.maximum(finite(a), 0.0), dtype=np.float32) for a in (x, ref))
+    exposures = _flip_exposures(ref, x)
+    if exposures is None:  # both black
+        return 0.0
+    _, mean, _ = flip_evaluator.evaluate(ref, x, "HDR", applyMagma=False, parameters=exposures)
+    return float(mean)
+
+
+def _flip_exposures(ref: np.ndarray, x: np.ndarray) -> dict[str, float] | None:
+    """{} where FLIP's own exposure range (from the reference) is finite; else the range from the median
+    of the reference's lit pixels, or of x's for a black reference; None when both are black."""
+    luminance = ref.reshape(-1, 3) @ FLIP_LUMINANCE
+    if luminance.size >= 2 and np.median(luminance) > 0:
+        return {}
+    lit = luminance[luminance > 0]
+    if lit.size == 0:
+        luminance = x.reshape(-1, 3) @ FLIP_LUMINANCE
+        lit = luminance[luminance > 0]
+    if lit.size == 0:
+        return None
+    white = _flip_white_exposure()
+    return {"startExposure": white - float(np.log2(lit.max())), "stopExposure": white - float(np.log2(np.median(lit)))}
+
+
+@functools.cache
+def _flip_white_exposure() -> float:
+    """log2 of the radiance FLIP's ACES maps to 0.85: its start exposure for an image of luminance 1."""
+    white = np.ones((2, 2, 3), dtype=np.float32)
+    _, _, used = flip_evaluator.evaluate(white, white, "HDR", applyMagma=False, computeMeanError=False)
+    return float(used["startExposure"])
+
+
 @dataclass(frozen=True)
 class Metric:
     """A column of Table 1: how to compute it from (x, ref), which direction is better, its definition."""
@@ -203,6 +257,7 @@ METRICS: tuple[Metric, ...] = (
     Metric("one_minus_ssim", "1-SSIM", one_minus_ssim, True, inspect.getdoc(ssim)),
     Metric("psnr", "PSNR", psnr, False, inspect.getdoc(psnr)),
     Metric("relmse", "relMSE", relmse, True, inspect.getdoc(relmse)),
+    Metric("hdr_flip", "HDR-FLIP", hdr_flip, True, inspect.getdoc(hdr_flip)),
 )
 
 

@@ -61,6 +61,7 @@ class ImageRecord:
     one_minus_ssim: float
     psnr: float
     relmse: float
+    hdr_flip: float
     nonfinite: int            # NaN/inf values in the method's image, replaced by 0 before scoring
     render_seconds: float
     denoise_seconds: float
