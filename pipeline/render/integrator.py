@@ -11,7 +11,8 @@ vertex, next-event estimation is split exactly by evaluating the BSDF with a dif
 (diffuse part -> `diffuse`, remainder -> `specular`), and the lobe the BSDF sample picks there sends
 the whole rest of the path to one buffer. Emission reached before that vertex goes to `diffuse`.
 Features (albedo, shading normal, depth) are taken at that vertex, times the delta chain's
-throughput. Albedo is the diffuse reflectance where the BSDF has a diffuse lobe: it is exact per
+throughput; a chain that escapes to the environment has albedo = its throughput, no normal, no depth.
+Albedo is the diffuse reflectance where the BSDF has a diffuse lobe: it is exact per
 sample, so demodulating the diffuse buffer by it adds no noise (the BSDF sample weight of a rough
 plastic is a noisy estimate: which lobe was picked, which direction). Elsewhere it is the sample
 weight, so conductors and dielectrics get a real albedo (Mitsuba's `eval_diffuse_reflectance` is 0
@@ -19,6 +20,14 @@ for smooth ones and f * pi at normal incidence for rough ones, 6.0 for rough gol
 buffer is empty anyway. A BSDF that reports no diffuse reflectance of its own but has a diffuse lobe
 (a `blendbsdf` of diffuse and metal) gets that default too: noise-free, the same in training and
 inference, clipped to 1 by the transforms, but not a physical albedo.
+
+Coverage is the share of a pixel's samples that reached a non-delta vertex; where none did, the share
+that escaped to the environment after a delta vertex (the sky in a mirror sphere, through glass).
+Inference passes pixels of coverage 0 through as environment seen directly, which has no noise; the
+sky in a mirror sphere is as noisy as the mirror is curved, so those pixels get a coverage and are
+denoised, with the features they always had: the networks train on every pixel, these included, and
+giving them the mirror's normal and depth instead made the shipped admc smooth the reflected sky
+(4.8x the noisy input's relMSE at 64 spp on scripts/delta_paths_check.py's mirror spheres).
 
 The sampling loop is a Dr.Jit symbolic loop (`@dr.syntax`): in JIT variants the whole wavefront
 compiles into one kernel, which is what makes a Python integrator as fast as the C++ `path`.
@@ -45,6 +54,7 @@ def aov_layout(split: bool) -> list[tuple[str, tuple[str, ...]]]:
         [(name, _RGB) for name in radiance]
         + [("albedo", _RGB), ("normal", _XYZ), ("depth", ("Z",)), ("coverage", ("A",))]
         + [(f"{name}_m2", _RGB) for name in radiance]
+        + [("delta_coverage", ("A",))]
     )
 
 
@@ -113,6 +123,8 @@ def _integrator_class(variant: str) -> type:
             albedo = mi.Spectrum(0.0)
             normal = mi.Vector3f(0.0)
             distance = mi.Float(0.0)
+            delta_seen = mi.Bool(False)    # the chain met a mirror or smooth glass
+            delta_escape = mi.Bool(False)  # ... and then escaped to the environment
 
             while dr.hint(active, label=INTEGRATOR_NAME):
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
@@ -137,6 +149,8 @@ def _integrator_class(variant: str) -> type:
                 first = in_chain & hit & smooth
                 distance[in_chain & hit] += si.t
                 albedo[in_chain & ~hit] = throughput
+                delta_escape |= in_chain & ~hit & delta_seen
+                delta_seen |= in_chain & hit & ~smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
 
                 # ---- Emitter sampling (same random numbers as `path`)
                 active_em = active_next & smooth
@@ -193,6 +207,7 @@ def _integrator_class(variant: str) -> type:
             aovs += [dr.select(found, distance, 0.0), coverage]
             for buffer in radiance:
                 aovs += [dr.square(buffer.x), dr.square(buffer.y), dr.square(buffer.z)]
+            aovs += [dr.select(delta_escape, 1.0, 0.0)]
             return l_diffuse + l_specular, valid_ray, aovs
 
     return AdmcSplitIntegrator
@@ -269,7 +284,7 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         planes[name] = mean[:, :, offset:offset + len(channels)]
         offset += len(channels)
 
-    coverage = planes["coverage"]
+    coverage = np.where(planes["coverage"] > 0, planes["coverage"], planes["delta_coverage"])
     out = {
         "albedo": planes["albedo"],
         "normal": planes["normal"],
