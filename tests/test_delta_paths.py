@@ -27,7 +27,7 @@ def _sky(mi) -> "mi.Bitmap":
     return mi.Bitmap(np.stack([value, 0.8 * value, 0.6 * value], axis=-1).astype(np.float32))
 
 
-def _sphere_scene(mi, bsdf: dict):
+def _sphere_scene(mi, bsdf: dict, sky: dict | None = None):
     """A unit sphere at the origin seen from z = 4 filling the image's middle, the environment around it."""
     T = mi.ScalarTransform4f
     return mi.load_dict({
@@ -35,7 +35,7 @@ def _sphere_scene(mi, bsdf: dict):
         "sensor": {"type": "perspective", "fov": 40,
                    "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": SIZE, "height": SIZE, "rfilter": {"type": "box"}}},
-        "sky": {"type": "envmap", "bitmap": _sky(mi)},
+        "sky": sky or {"type": "envmap", "bitmap": _sky(mi)},
         "ball": {"type": "sphere", "radius": 1.0, "bsdf": bsdf},
     })
 
@@ -54,52 +54,67 @@ def mirror(variant):
     return render_buffers(scene, 4, seed=1), reference["diffuse"] + reference["specular"]
 
 
+def _on_sphere_and_off(margin: float = 1.5):
+    """Pixels wholly on the sphere's image and wholly off it: the unit sphere at distance 4 spans asin(1/4) of
+    the 20-degree half field of view, a disc of radius 11.35 pixels around the centre."""
+    radius = SIZE / 2 * np.tan(np.arcsin(0.25)) / np.tan(np.radians(20))
+    y, x = np.mgrid[:SIZE, :SIZE] + 0.5 - SIZE / 2
+    distance = np.hypot(x, y)
+    return distance < radius - margin, distance > radius + margin
+
+
 @pytest.mark.parametrize("bsdf", [MIRROR_BSDF, {"type": "dielectric"}], ids=["mirror", "glass"])
 def test_environment_seen_through_a_delta_surface_is_covered_with_its_old_features(variant, bsdf):
-    """Every sample of the sphere's pixels escapes to the environment after the sphere: coverage 1 (it was
-    0), and the features the networks were trained on there: no normal, no depth, the chain's throughput."""
+    """Every sample of the sphere's pixels escapes to the environment after the sphere and they see different
+    parts of the sky: coverage 1 (it was 0), with the features the networks were trained on there: no normal,
+    no depth, the chain's throughput as albedo."""
     import mitsuba as mi
 
     layers = render_buffers(_sphere_scene(mi, bsdf), 4, seed=0)
-    assert np.all(layers["coverage"][CENTRE] == 1)
-    assert np.all(layers["normal"][CENTRE] == 0) and np.all(layers["depth"][CENTRE] == 0)
+    on, off = _on_sphere_and_off()
+    coverage = layers["coverage"][..., 0]
+    assert (coverage[on] == 1).mean() > 0.9  # the rest: pixels whose 4 samples saw the same sky
+    assert np.all(layers["normal"] == 0) and np.all(layers["depth"] == 0)  # no non-delta surface anywhere
     if bsdf is MIRROR_BSDF:
-        np.testing.assert_allclose(layers["albedo"][CENTRE], MIRROR, rtol=1e-6)
-    sky = layers["coverage"][..., 0] == 0
-    assert sky[0, 0] and sky.sum() > SIZE * SIZE // 3  # the environment seen directly: unchanged
-    assert np.all(layers["normal"][sky] == 0) and np.all(layers["depth"][sky] == 0)
-    assert np.all(layers["albedo"][sky] == 1)
+        np.testing.assert_allclose(layers["albedo"][on], MIRROR, rtol=1e-6)
+    assert np.all(coverage[off] == 0) and np.all(layers["albedo"][off] == 1)  # the environment seen directly
 
 
-def _sphere_and_sky(layers):
-    """Pixels wholly on the sphere and wholly on the environment, told apart by albedo (0.8 and 1) rather than
-    by the coverage whose meaning is under test."""
-    albedo = layers["albedo"][..., 0]
-    return np.isclose(albedo, MIRROR, rtol=1e-6), albedo == 1
+def test_a_uniform_sky_in_a_mirror_has_nothing_to_denoise_and_stays_environment(variant):
+    """Every sample of a centre pixel sees the same sky through the same mirror: the samples agree (to float32
+    rounding), there is no noise, and the pixel keeps coverage 0 to be passed through exactly."""
+    import mitsuba as mi
+
+    sky = {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 0.7, 0.3]}}
+    layers = render_buffers(_sphere_scene(mi, MIRROR_BSDF, sky), 4, seed=0)
+    assert np.all(layers["coverage"][CENTRE] == 0)
+    np.testing.assert_allclose(layers["diffuse"][CENTRE], np.broadcast_to(MIRROR * np.array([1.0, 0.7, 0.3]), (2, 2, 3)),
+                               rtol=1e-6)
 
 
 def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror):
     layers, _ = mirror
     noisy = layers["diffuse"] + layers["specular"]
     out = load_denoiser(WEIGHTS / "admc-small-pretrained.pt")(layers).image
-    sphere, sky = _sphere_and_sky(layers)
+    sphere, sky = _on_sphere_and_off()
     changed = np.abs(out - noisy) > 1e-3 * noisy
-    assert changed[sphere].mean() > 0.9
+    assert changed[sphere].mean() > 0.8
     np.testing.assert_allclose(out[sky], noisy[sky], rtol=1e-6)  # the environment seen directly is kept
 
 
-def test_the_refiner_keeps_oidn_on_the_environment_and_refines_it_on_the_mirror(mirror):
+def test_the_refiner_refines_oidn_on_the_mirror_and_keeps_the_environment_exact(mirror):
     layers, reference = mirror
+    noisy = layers["diffuse"] + layers["specular"]
     out = load_denoiser(WEIGHTS / "admc-small-refiner.pt")(layers).image
     clean, _ = sanitize_layers(layers)
     bases = oidn_bases({name: clean[name] for name in ("diffuse", "specular", "albedo", "normal")})
     base = bases["diffuse"] + bases["specular"]
-    sphere, sky = _sphere_and_sky(layers)
-    # the log transform and its inverse round trip in float32
-    np.testing.assert_allclose(out[sky], base[sky], rtol=1e-5, atol=1e-6)
-    noisy = layers["diffuse"] + layers["specular"]
-    assert np.abs(base[sky] - noisy[sky]).max() > 1e-3  # OIDN does change them: the check can fail
+    sphere, sky = _on_sphere_and_off()
     # On the mirror the refiner corrects OIDN by well under 1 % (either way, seed by seed: 0.992x to 1.004x over
     # 8 seeds); the issue's bound for it is 2 % over OIDN. Passing the noisy input through was 1.22x.
     error, base_error = (relmse(image[sphere][None], reference[sphere][None]) for image in (out, base))
     assert error <= 1.02 * base_error
+    # The environment seen directly has no noise: the input is exact there, OIDN's output is not (around small
+    # emitters on a black void it was a halo of over 1000x the scene's relMSE), so the refiner keeps the input.
+    np.testing.assert_allclose(out[sky], noisy[sky], rtol=1e-6)
+    assert np.abs(base[sky] - noisy[sky]).max() > 1e-3  # OIDN does change them: the check can fail

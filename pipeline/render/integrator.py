@@ -21,13 +21,16 @@ buffer is empty anyway. A BSDF that reports no diffuse reflectance of its own bu
 (a `blendbsdf` of diffuse and metal) gets that default too: noise-free, the same in training and
 inference, clipped to 1 by the transforms, but not a physical albedo.
 
-Coverage is the share of a pixel's samples that reached a non-delta vertex; where none did, the share
-that escaped to the environment after a delta vertex (the sky in a mirror sphere, through glass).
-Inference passes pixels of coverage 0 through as environment seen directly, which has no noise; the
-sky in a mirror sphere is as noisy as the mirror is curved, so those pixels get a coverage and are
-denoised, with the features they always had: the networks train on every pixel, these included, and
-giving them the mirror's normal and depth instead made the shipped admc smooth the reflected sky
-(4.8x the noisy input's relMSE at 64 spp on scripts/delta_paths_check.py's mirror spheres).
+Coverage is the share of a pixel's samples that reached a non-delta vertex; where none did but its
+samples disagree (`_samples_disagree`), the share that escaped to the environment after a delta
+vertex. Inference passes pixels of coverage 0 through as environment seen directly, which has no
+noise; the sky in a mirror sphere or through glass is as noisy as the surface is curved, so those
+pixels get a coverage and are denoised. Where their samples agree (a black void through glass, a
+uniform sky in a mirror; always at 1 spp) there is nothing to denoise, and denoising them anyway made
+admc's relMSE worse on studio scenes of glass in a black void. The covered ones keep the features
+they always had: the networks train on every pixel, these included, and giving them the mirror's
+normal and depth instead made the shipped admc smooth the reflected sky (4.8x the noisy input's
+relMSE at 64 spp on experiments/delta_paths_check.py's mirror spheres).
 
 The sampling loop is a Dr.Jit symbolic loop (`@dr.syntax`): in JIT variants the whole wavefront
 compiles into one kernel, which is what makes a Python integrator as fast as the C++ `path`.
@@ -213,6 +216,18 @@ def _integrator_class(variant: str) -> type:
     return AdmcSplitIntegrator
 
 
+SAMPLES_AGREE_RTOL = 1e-3
+"""A pixel's samples agree where their standard deviation is below this share of their mean in every
+channel of every radiance buffer (float32 accumulation leaves about 2e-4 on identical samples)."""
+
+
+def _samples_disagree(buffers: dict[str, np.ndarray], spp: int) -> np.ndarray:
+    """(H, W, 1): the pixel's samples differ beyond float rounding in some radiance channel."""
+    spread = [buffers[f"{name}_var"] * spp > np.square(SAMPLES_AGREE_RTOL * buffers[name])
+              for name in RADIANCE_BUFFERS if name in buffers]
+    return np.any(np.concatenate(spread, axis=-1), axis=-1, keepdims=True)
+
+
 _registered_variants: set[str] = set()
 
 
@@ -284,15 +299,17 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         planes[name] = mean[:, :, offset:offset + len(channels)]
         offset += len(channels)
 
-    coverage = np.where(planes["coverage"] > 0, planes["coverage"], planes["delta_coverage"])
-    out = {
-        "albedo": planes["albedo"],
-        "normal": planes["normal"],
-        "depth": np.where(coverage > 0, planes["depth"] / np.where(coverage > 0, coverage, 1.0), 0.0),
-        "coverage": coverage,
-    }
+    out = {}
     for name in RADIANCE_BUFFERS if split else RADIANCE_BUFFERS[:1]:
         m1 = planes[name]
         out[name] = m1
         out[f"{name}_var"] = np.maximum(planes[f"{name}_m2"] - np.square(m1), 0.0) / spp
+    via_delta = (planes["coverage"] == 0) & (planes["delta_coverage"] > 0) & _samples_disagree(out, spp)
+    coverage = np.where(via_delta, planes["delta_coverage"], planes["coverage"])
+    out.update({
+        "albedo": planes["albedo"],
+        "normal": planes["normal"],
+        "depth": np.where(coverage > 0, planes["depth"] / np.where(coverage > 0, coverage, 1.0), 0.0),
+        "coverage": coverage,
+    })
     return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}

@@ -1,14 +1,14 @@
 #!/usr/bin/env python3
 """Pixels that see the environment only through mirrors or smooth glass: denoised now, passed through before.
 
-    python scripts/delta_paths_check.py [--size 128] [--spp 4 16 64] [--reference-spp 1024] [--threads 2]
+    python experiments/delta_paths_check.py [--size 128] [--spp 4 16 64] [--reference-spp 1024] [--threads 2]
 
 Renders a scene written here (three mirror spheres and a glass sphere, nothing else, under a procedural
 environment map with a sun, stripes and a checkered ground) with the admc_split integrator, and scores
 against a high-spp render of it: the noisy input, OIDN, and the shipped admc and admc+oidn weights (run
 as Table 1 runs them: the default config's eval.ensemble and eval.dark_pass), each as they run now and as
-they ran before, when those pixels had coverage 0 and were passed through (admc kept the noisy input, and
-the refiner did too, where it now keeps OIDN's output). Prints relMSE and 1-SSIM over the whole image and
+they ran before, when those pixels had coverage 0 and were passed through (both kept the noisy input).
+Prints relMSE and 1-SSIM over the whole image and
 relMSE over the pixels the change touches.
 """
 import argparse
@@ -95,10 +95,7 @@ def main() -> None:
         noisy = layers["diffuse"] + layers["specular"]
         images = {"noisy": noisy, "oidn": oidn.denoise(layers)}
         for name, denoiser in learned.items():
-            before = denoiser(old).image
-            if name == "admc+oidn":  # the refiner returned the noisy input where coverage was 0
-                before = np.where(touched[..., None], noisy, before)
-            images[f"{name} before"] = before
+            images[f"{name} before"] = denoiser(old).image
             images[f"{name} now"] = denoiser(layers).image
         print(f"{spp} spp, {int(touched.sum())} touched pixels of {touched.size}")
         for name, image in images.items():
