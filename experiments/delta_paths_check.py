@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from admc.common.metrics import one_minus_ssim, relmse
-from admc.model.inference import load_denoiser
+from admc.model.inference.denoiser import load_denoiser
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.render.integrator import render_buffers
