@@ -42,7 +42,7 @@ def test_error_at_a_curve_point_is_that_point_and_outside_is_none():
 
 def _records(method, curve, render):
     """Two scenes per spp whose means are `curve`'s points (±10% around them), rendered in `render` seconds."""
-    return [ImageRecord(scene, spp, method, "cpu", 0.1, 30.0, relmse * factor, 0, render[spp],
+    return [ImageRecord(scene, spp, method, "cpu", 0.1, 30.0, relmse * factor, 0.2, 0, render[spp],
                         seconds - render[spp], Path(f"/out/images/{scene}_{spp}_{method}.exr"))
             for spp, (seconds, relmse) in curve.items() for scene, factor in (("a", 0.9), ("b", 1.1))]
 
