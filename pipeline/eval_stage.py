@@ -90,7 +90,7 @@ def default_models(cfg: Config) -> list[Path]:
 
 ENSEMBLE_DARK = (4, True)
 """The costly settings eval.also_ensemble_dark adds a row for: the 4-way ensemble and the dark pass."""
-ENSEMBLE_DARK_SUFFIX = " ens4+dark"
+ENSEMBLE_DARK_SUFFIX = "-ens4+dark"
 
 
 def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "auto") -> list[Denoiser]:

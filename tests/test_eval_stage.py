@@ -119,8 +119,10 @@ def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
 def test_the_ensemble_and_dark_pass_row_has_its_own_name_and_settings(tmp_path, ensemble, dark_pass, rows):
     from admc.pipeline.eval_stage import learned_denoisers
     from admc.pipeline.train_stage import WEIGHTS_DIR
+    from admc.pipeline.evaluation.evaluate import _check_denoisers
     cfg = load_config(None, overrides(tmp_path) + [f"eval.ensemble={ensemble}", f"eval.dark_pass={dark_pass}",
                                                    "eval.also_ensemble_dark=true"])
     models = learned_denoisers(cfg, [str(WEIGHTS_DIR / "admc-small-pretrained.pt")], device="cpu")
     assert [(m.name, m.ensemble, m.dark_pass) for m in models] == [
-        ("admc", ensemble, dark_pass == "true"), ("admc ens4+dark", 4, True)][:rows]  # no row twice
+        ("admc", ensemble, dark_pass == "true"), ("admc-ens4+dark", 4, True)][:rows]  # no row twice
+    _check_denoisers(models)  # names evaluate() accepts (they name image files)
