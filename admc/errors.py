@@ -6,6 +6,8 @@ else is a bug and keeps its traceback. Subclasses also derive from the built-in 
 """
 from __future__ import annotations
 
+import errno
+
 
 class AdmcError(Exception):
     """A user-fixable failure; str(error) is the whole message a user sees."""
@@ -17,3 +19,15 @@ class TrainingError(AdmcError, ValueError):
 
 class DeviceError(AdmcError, ValueError):
     """The asked-for torch device is not one admc runs on, or this machine does not have it."""
+
+
+# What the file system says when it refuses a write: the user frees space, or picks a folder they may write.
+USER_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM})
+
+
+def user_os_error(exc: OSError) -> str | None:
+    """The one line for an OSError a user can fix (a read-only folder, a full disk), naming its file;
+    None for any other OSError (a missing file admc should have checked for is a bug)."""
+    if exc.errno not in USER_ERRNOS:
+        return None
+    return f"{exc.filename}: {exc.strerror}" if exc.filename else f"{exc.strerror}"

@@ -20,6 +20,22 @@ class JsonFileError(AdmcError, ValueError):
     """A JSON file admc wrote (a cache manifest) is malformed: damaged or edited by hand."""
 
 
+class WriteError(AdmcError, OSError):
+    """The file system refused a write (read-only folder, full disk, no permission): the user can fix that."""
+
+
+def _os_cause(exc: BaseException) -> OSError | None:
+    """The OSError behind a failure, if any: libraries (torch, OpenEXR) writing to a Python file object
+    re-raise its OSError as their own RuntimeError, which keeps the OSError as its context."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, OSError):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def temp_sibling(path: Path) -> Path:
     """A unique hidden name in the same folder (same filesystem, so the final rename is atomic)."""
     path = Path(path)
@@ -40,20 +56,26 @@ def publishing(path: Path) -> Iterator[Path]:
     """Yield a temporary sibling path to write; on success fsync it and rename it onto `path`.
 
     On an exception the temporary file is removed and the exception propagates; `path` is untouched.
+    A failure the file system caused (an OSError, or a library's error raised from one: write through a
+    Python file object so that it is) becomes one WriteError naming `path`.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_sibling(path)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         if not tmp.is_file():
-            raise FileNotFoundError(f"{path}: the writer produced no file at {tmp}")
+            raise RuntimeError(f"{path}: the writer produced no file at {tmp}")
         fsync_path(tmp)
         os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fsync_path(path.parent)
+        fsync_path(path.parent)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        cause = _os_cause(exc)
+        if cause is None or isinstance(exc, AdmcError) or not isinstance(exc, Exception):
+            raise
+        raise WriteError(f"{path}: cannot be written ({cause.strerror or cause})") from exc
 
 
 def dumps_canonical(obj: Any) -> str:

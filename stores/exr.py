@@ -76,8 +76,8 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "ha
                            f"precision='float'")
         for i, channel in enumerate(LAYER_CHANNELS[name]):
             channels[_full_name(name, channel)] = np.ascontiguousarray(stored[:, :, i])
-    with publishing(path) as tmp:
-        OpenEXR.File(header, channels).write(str(tmp))
+    with publishing(path) as tmp, tmp.open("wb") as stream:  # through Python: a full disk raises OSError
+        OpenEXR.File(header, channels).write(stream)
 
 
 def _check_layers(path: Path, layers: dict[str, np.ndarray]) -> None:
