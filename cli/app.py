@@ -13,7 +13,7 @@ from rich.table import Table
 from rich.text import Text
 
 from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
-from admc.errors import AdmcError
+from admc.errors import AdmcError, user_os_error
 from admc.pipeline import config as config_mod
 
 app = typer.Typer(help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
@@ -27,16 +27,18 @@ SchedulerOpt = Annotated[Optional[str], typer.Option(help="sync | threads | proc
 
 
 def _user_errors(fn):
-    """A user-fixable failure (any admc.errors.AdmcError) prints its one message and exits 2; anything else
-    is a bug and keeps its traceback. ADMC_DEBUG=1 shows the traceback of user errors too."""
+    """A user-fixable failure (any admc.errors.AdmcError, or a file system that refuses a write: see
+    user_os_error) prints its one message and exits 2; anything else is a bug and keeps its traceback.
+    ADMC_DEBUG=1 shows the traceback of user errors too."""
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except AdmcError as exc:
-            if os.environ.get("ADMC_DEBUG"):
+        except (AdmcError, OSError) as exc:
+            message = str(exc) if isinstance(exc, AdmcError) else user_os_error(exc)
+            if message is None or os.environ.get("ADMC_DEBUG"):
                 raise
-            err.print(Text.assemble(("error: ", "bold red"), str(exc)))
+            err.print(Text.assemble(("error: ", "bold red"), message))
             raise typer.Exit(2)
     return wrapper
 
@@ -73,8 +75,8 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
     console.print(f"EXRs: {result.renders_dir}  ({result.executed} rendered now, {result.cached} cached)")
 
 
-def _print_dataset(result, summary_only: bool = False) -> None:
-    from admc.pipeline.dataset.report import contact_sheet
+def _print_dataset(result, workdir: str) -> None:
+    from admc.pipeline.dataset.report import contact_sheet, contact_sheet_path
     from admc.stores.patches import store_summary
 
     for note in result.notes:
@@ -104,7 +106,7 @@ def _print_dataset(result, summary_only: bool = False) -> None:
     for split in ("train", "val", "test"):
         if not summary["splits"][split]["scenes"]:
             console.print(f"[yellow]warning:[/] split {split!r} has no scenes (add scenes or change tile.split)")
-    sheet = contact_sheet(result.store, result.store.parent / "contact_sheet.png")
+    sheet = contact_sheet(result.store, contact_sheet_path(Path(workdir), result.store))
     if sheet:
         console.print(f"contact sheet (noisy | reference | albedo | normal): {sheet}")
 
@@ -120,7 +122,7 @@ def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerO
     result = existing_dataset(cfg) if summary else build_dataset(cfg)
     if not summary:
         console.print(f"{result.executed} tasks run, {result.cached} cached; renders in {result.renders_dir}")
-    _print_dataset(result)
+    _print_dataset(result, cfg.run.workdir)
 
 
 @app.command()
@@ -132,7 +134,7 @@ def tile(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt 
     cfg = _load(config, set_, scheduler)
     result = build_dataset(cfg, render_missing=False)
     console.print(f"{result.executed} tile tasks run, {result.cached} cached")
-    _print_dataset(result)
+    _print_dataset(result, cfg.run.workdir)
 
 
 class Stage(str, Enum):
@@ -216,7 +218,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.train_stage import load_model
-    from admc.pipeline.user_files import DenoiseInputError, check_output_path, load_denoise_input
+    from admc.pipeline.user_files import DenoiseInputError, check_output_path, load_denoise_input, output_paths
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -226,20 +228,19 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
     if engine is not None and engine not in ENGINE_CHOICES:
         raise typer.BadParameter(f"--engine must be one of {', '.join(ENGINE_CHOICES)}, got {engine!r}")
     cfg, model, written, failed = _load(config, set_), None, [], []
-    for path in inputs:
+    for path, target in zip(inputs, output_paths(inputs, output)):
         try:
             source = load_denoise_input(path)
-            target = output or path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr")
             check_output_path(target, source)
             if model is None:  # after the first input checks out
                 model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
                                    engine=engine or cfg.eval.engine)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             _denoise_one(model, path, source, target)
-        except (DenoiseInputError, ExrError) as exc:  # this input's fault: the others still get denoised
-            if len(inputs) == 1:
+        except (DenoiseInputError, ExrError, OSError) as exc:  # this input's or its folder's fault: the others
+            if len(inputs) == 1 or _input_failure(exc) is None:  # still get denoised
                 raise
-            failed.append((path, exc))
+            failed.append((path, _input_failure(exc)))
             continue
         written.append(target)
     if failed:
@@ -258,11 +259,16 @@ def _denoise_one(model, path: Path, source, target: Path) -> None:
                   markup=False)
 
 
-def _batch_summary(failed: list[tuple[Path, Exception]], written: list[Path], total: int) -> str:
+def _input_failure(exc: Exception) -> str | None:
+    """What went wrong with one input of a batch, or None for a failure that is not the input's (a bug)."""
+    return str(exc) if isinstance(exc, AdmcError) else user_os_error(exc)
+
+
+def _batch_summary(failed: list[tuple[Path, str]], written: list[Path], total: int) -> str:
     """Which inputs of a batch failed and why, and what was written, as one message."""
     lines = [f"{len(failed)} of {total} inputs not denoised:"]
-    for path, exc in failed:
-        lines.append(f"  {exc}" if str(exc).startswith(str(path)) else f"  {path}: {exc}")
+    for path, why in failed:
+        lines.append(f"  {why}" if why.startswith(str(path)) else f"  {path}: {why}")
     lines.append(f"written: {', '.join(map(str, written))}" if written else "nothing written")
     return "\n".join(lines)
 
@@ -310,10 +316,11 @@ def export(weights: Annotated[Path, typer.Argument(help="Weights or checkpoint f
 @_user_errors
 def cache(config: ConfigOpt = None, set_: SetOpt = None,
           clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
-          stage: Annotated[Optional[str], typer.Option(help="Only this stage (render, tile, ...).")] = None) -> None:
+          stage: Annotated[Optional[str], typer.Option(help="Only this stage: render or tile.")] = None) -> None:
     """Show what is cached (per stage: entries and size), or clear it."""
-    from admc.pipeline.stages import open_cache
+    from admc.pipeline.stages import check_cached_stage, open_cache
 
+    check_cached_stage(stage)
     cfg = _load(config, set_)
     store = open_cache(cfg)
     if clear:

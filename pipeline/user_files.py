@@ -158,6 +158,26 @@ def _complete_depth(result: DenoiseInput, where: str) -> None:
     result.layers.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
 
 
+def output_paths(inputs: list[Path], output: Path | None = None) -> list[Path]:
+    """Where each input's result goes: `output` for a single input, else INPUT.denoised.exr beside it
+    (NAME.denoised.exr for NAME.hdr.exr). Refuses, before any work, a batch in which two inputs would
+    write the same file or an output would replace an input of the batch."""
+    targets = [Path(output)] if output is not None else [
+        path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr") for path in inputs]
+    first: dict[Path, Path] = {}
+    given = {path.resolve(): path for path in inputs}
+    for path, target in zip(inputs, targets):
+        key = target.resolve()
+        if key in first:
+            raise DenoiseInputError(f"{first[key]} and {path} would both be written to {target}; denoise them in "
+                                    "separate runs, each with its own --output")
+        if key in given:
+            raise DenoiseInputError(f"{target}: the output for {path} is also an input of this batch; denoise "
+                                    "them in separate runs, or give --output for one input")
+        first[key] = path
+    return targets
+
+
 def check_output_path(path: Path, source: DenoiseInput) -> None:
     """Refuse an output that is not an .exr or would overwrite an input, before any work is spent."""
     path = Path(path)

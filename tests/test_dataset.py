@@ -9,6 +9,7 @@ import pytest
 from admc.model import transforms as tf
 from admc.pipeline.config import load_config
 from admc.pipeline.dataset import tile
+from admc.pipeline.dataset.report import contact_sheet_path
 from admc.pipeline.stages import build_dataset
 from admc.stores import exr, patches
 
@@ -184,7 +185,8 @@ def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
     out = subprocess.run([ADMC, "dataset", "--summary", *args], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "train" in out.stdout and "sanitized values" in out.stdout
-    sheet = result.store.parent / "contact_sheet.png"
+    sheet = contact_sheet_path(workdir, result.store)
+    assert str(sheet) in out.stdout
     from PIL import Image
     image = Image.open(sheet)
     assert image.size[0] == 4 * 32 + 3 * 4 and image.size[1] >= 32

@@ -1,6 +1,7 @@
 """What a person checks after `make dataset`: counts, value ranges, sanitisation, a contact sheet."""
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ from admc.common.layout import ALBEDO, NORMAL
 from admc.common.metrics import reinhard, to_ldr
 from admc.model import transforms as tf
 from admc.stores import patches
+from admc.stores.atomic import publishing
 
 
 def _linear(row: dict, specular: dict | None) -> tuple[np.ndarray, np.ndarray]:
@@ -21,6 +23,14 @@ def _linear(row: dict, specular: dict | None) -> tuple[np.ndarray, np.ndarray]:
         noisy = noisy + tf.specular_inverse(specular["noisy"].transpose(1, 2, 0))
         ref = ref + tf.specular_inverse(specular["reference"].transpose(1, 2, 0))
     return noisy, ref
+
+
+def contact_sheet_path(workdir: Path, store: Path) -> Path:
+    """workdir/contact_sheets/<store name>-<hash of its absolute path>.png: inside the run's workdir, and
+    one per store, so two stores side by side (or two of one name) never overwrite each other's sheet."""
+    store = Path(store).resolve()
+    digest = hashlib.sha256(str(store).encode()).hexdigest()[:8]
+    return Path(workdir) / "contact_sheets" / f"{store.name}-{digest}.png"
 
 
 def contact_sheet(store: Path, out_png: Path, split: str = "train", rows: int = 8, seed: int = 0) -> Path | None:
@@ -41,6 +51,6 @@ def contact_sheet(store: Path, out_png: Path, split: str = "train", rows: int = 
         gap = np.full((noisy.shape[0], 4, 3), 255, np.uint8)
         lines.append(np.concatenate([to_ldr(reinhard(noisy)), gap, to_ldr(reinhard(ref)), gap, albedo, gap, normal], axis=1))
         lines.append(np.full((4, lines[-1].shape[1], 3), 255, np.uint8))
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(lines[:-1], axis=0)).save(out_png)
+    with publishing(out_png) as tmp:
+        Image.fromarray(np.concatenate(lines[:-1], axis=0)).save(tmp, format="PNG")
     return out_png
