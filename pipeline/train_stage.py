@@ -14,7 +14,7 @@ from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
 from admc.model.training import distributed
 from admc.model.training.distributed import check_world
-from admc.model.training.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, train
+from admc.model.training.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_fresh_start, train
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import stage as render
@@ -87,6 +87,8 @@ def _prepare(cfg: Config, stage: str, init_from: Path | None, restart: bool, pro
     if restart and out_dir.exists():
         shutil.rmtree(out_dir)
     resume = (out_dir / CHECKPOINT_NAME).is_file()
+    if not resume:
+        check_fresh_start(out_dir)  # before the dataset is built, not after
     if stage == "finetune" and init_from is None and not resume:
         init_from = shipped_weights(cfg.model)
         if init_from is None:

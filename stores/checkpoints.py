@@ -29,8 +29,8 @@ class CheckpointError(AdmcError, ValueError):
 
 
 def _save(path: Path, obj: dict) -> None:
-    with publishing(Path(path)) as tmp:
-        torch.save(obj, tmp)
+    with publishing(Path(path)) as tmp, tmp.open("wb") as stream:  # through Python: a full disk raises OSError
+        torch.save(obj, stream)
 
 
 def _unreadable(head: bytes, exc: Exception) -> str:
@@ -38,10 +38,12 @@ def _unreadable(head: bytes, exc: Exception) -> str:
     with weights_only=False: unpickling a file from elsewhere that way can run arbitrary code."""
     if not head:
         return "the file is empty"
-    unsafe = re.search(r"GLOBAL (\S+) was not an allowed global", str(exc))
-    if unsafe:
-        return (f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values, which admc does not "
-                f"unpickle")
+    unsafe = re.search(r"GLOBAL (\S+)", str(exc))
+    if unsafe:  # torch's weights-only unpickler refused a Python object: what a malicious file smuggles in
+        return (f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values: not a weights file "
+                "admc wrote (admc does not unpickle objects)")
+    if head.startswith(b"\x80"):  # a bare pickle's protocol opcode
+        return "it is a bare Python pickle, not a weights file admc wrote (admc does not unpickle objects)"
     if head.startswith(b"PK"):  # torch's own zip format
         return "it starts like a torch file but is truncated or damaged"
     return "its content is not in torch's save format (text or other data?)"
@@ -95,6 +97,11 @@ def load_network(net: torch.nn.Module, state: dict, where: str, architecture: st
         problems.append(f"{len(unexpected)} not in the model (first {unexpected[0]})")
     if problems:
         raise CheckpointError(f"{where} weights do not fit {architecture}: {'; '.join(problems)}")
+    for name, tensor in state.items():  # NaN weights would run and write black images without a word
+        if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            count = int((~torch.isfinite(tensor)).sum())
+            raise CheckpointError(f"{where} weights hold {count} non-finite value(s) (NaN or Inf) in tensor {name}: "
+                                  "the file is damaged or comes from a diverged training; use other weights")
     net.load_state_dict(state)
 
 

@@ -156,15 +156,25 @@ class _Run:
                 "best": self.best.state_dict(), "rng": rng_state()}
 
 
+def check_fresh_start(out_dir: Path) -> None:
+    """Refuse to start a run from step 0 in `out_dir` over an earlier run's checkpoint or finished weights:
+    a deleted checkpoint must not let a fresh start silently replace the weights a run shipped."""
+    checkpoint, weights = Path(out_dir) / CHECKPOINT_NAME, Path(out_dir) / WEIGHTS_NAME
+    if checkpoint.exists():
+        raise TrainingError(f"{checkpoint} exists: pass resume=True to continue that run, or use another out_dir")
+    if weights.exists():
+        raise TrainingError(f"{weights}: holds the finished weights of an earlier run, whose {CHECKPOINT_NAME} is "
+                            "gone, so it cannot resume; a new run from step 0 would replace them: move them away "
+                            "first, or pass --restart to discard that run")
+
+
 def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, dict, str]:
     """(checkpoint, init networks, transform spec, where the spec came from) for a resumed, fine-tuned
     or fresh run; refuses a fresh run over an existing checkpoint."""
     if resume:
         checkpoint = load_checkpoint(run.checkpoint_path)
         return checkpoint, None, checkpoint["transform"], f"checkpoint {run.checkpoint_path}"
-    if run.checkpoint_path.exists():
-        raise TrainingError(f"{run.checkpoint_path} exists: pass resume=True to continue that run, "
-                            "or use another out_dir")
+    check_fresh_start(run.out_dir)
     if run.stage == "finetune":
         init_nets, transform, source = load_init(run.init_from, run.model)
         return None, init_nets, transform, f"init weights {source}"

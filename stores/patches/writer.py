@@ -43,6 +43,9 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
         raise PatchStoreError(f"create_store {path}: attrs may not set reserved keys {sorted(reserved)}")
     full = _jsonable({**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "layout": LAYOUT},
                      f"create_store {path}: attrs")
+    if not exists(path) and (path.is_file() or (path.is_dir() and any(path.iterdir()))):
+        raise PatchStoreError(f"{path}: exists and is not a patch store (no zarr.json); a store is made only in a "
+                              "new or empty folder: choose another tile.store, or move that folder away")
     if exists(path):
         existing = dict(_open_root(path).attrs)
         diff = differing_keys(existing, full)
