@@ -26,7 +26,7 @@ from typing import Any
 
 from admc.errors import AdmcError
 import admc
-from admc.stores.atomic import dumps_canonical, fsync_path, read_json, write_json
+from admc.stores.atomic import JsonFileError, dumps_canonical, fsync_path, read_json, write_json
 
 MANIFEST = "_task.json"
 TMP_DIR = ".tmp"
@@ -133,7 +133,10 @@ class StageCache:
         return found[0] / task_or_key
 
     def is_done(self, task: Task) -> bool:
-        return (self.path(task) / MANIFEST).is_file()
+        """Published and intact: a damaged entry (a file deleted or truncated since) counts as not done, so the
+        task runs again and its new output replaces the entry, instead of failing downstream on every run."""
+        folder = self.path(task)
+        return (folder / MANIFEST).is_file() and _intact(folder)
 
     def manifest(self, task: Task) -> dict:
         if not self.is_done(task):
@@ -159,6 +162,7 @@ class StageCache:
         try:
             summary = task.fn(work, {name: Path(p) for name, p in input_paths.items()}, **task.params)
             write_json(work / MANIFEST, {
+                "files": {str(f.relative_to(work)): f.stat().st_size for f in sorted(work.rglob("*")) if f.is_file()},
                 "stage": task.stage, "label": task.label, "key": task.key, "params": task.params,
                 "inputs": {name: upstream.key for name, upstream in task.inputs.items()},
                 "code_version": task.code_version, "summary": summary,
@@ -241,6 +245,22 @@ class StageCache:
                 shutil.rmtree(folder, ignore_errors=True)
                 removed += 1
         return removed
+
+
+def _intact(folder: Path) -> bool:
+    """Whether every file the manifest lists is there with its size as published (a readable manifest
+    without that list predates it and is trusted)."""
+    try:
+        files = read_json(folder / MANIFEST).get("files", {})
+    except (JsonFileError, FileNotFoundError, AttributeError):
+        return False
+    for name, size in files.items():
+        try:
+            if (folder / name).stat().st_size != size:
+                return False
+        except FileNotFoundError:
+            return False
+    return True
 
 
 @functools.cache
