@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import tomllib
 import typing
@@ -24,6 +25,12 @@ from admc.model.training.settings import TrainSettings
 
 class ConfigError(AdmcError, ValueError):
     pass
+
+
+MAX_RESOLUTION = 16384
+"""Largest render side: a 16K film already takes GBs per buffer; far larger ones fail deep in Dr.Jit."""
+SPLIT_TOLERANCE = 1e-6
+"""How far tile.split's fractions may sum from 1 (decimal fractions such as 0.8 + 0.1 + 0.1 are inexact)."""
 
 
 def _require(ok: bool, key: str, message: str) -> None:
@@ -76,7 +83,8 @@ class RenderConfig:
 
     def check(self) -> None:
         w, h = self.resolution
-        _require(w >= 1 and h >= 1, "render.resolution", f"must be positive, got {list(self.resolution)}")
+        _require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "render.resolution",
+                 f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.resolution)}")
         _require(len(self.spp) > 0, "render.spp", "needs at least one sample count")
         _require(all(s >= 1 for s in self.spp), "render.spp", f"every spp must be >= 1, got {list(self.spp)}")
         _require(len(set(self.spp)) == len(self.spp), "render.spp", f"duplicates in {list(self.spp)}")
@@ -103,8 +111,9 @@ class TileConfig:
                  f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}")
         _require(self.crops_per_scene >= 1, "tile.crops_per_scene", "must be >= 1")
         _require(self.candidates_per_crop >= 1, "tile.candidates_per_crop", "must be >= 1")
-        _require(all(f >= 0 for f in self.split) and sum(self.split) > 0, "tile.split",
-                 f"fractions must be >= 0 and not all 0, got {list(self.split)}")
+        _require(all(f >= 0 for f in self.split) and abs(sum(self.split) - 1) <= SPLIT_TOLERANCE, "tile.split",
+                 f"the train, val and test fractions must be >= 0 and sum to 1, got {list(self.split)} "
+                 f"(sum {sum(self.split):g})")
         _require(bool(self.store), "tile.store", "must not be empty")
         _require(self.val_set in ("split", "ood"), "tile.val_set", f"must be split or ood, got {self.val_set!r}")
 
@@ -162,6 +171,9 @@ class RunConfig:
     def check(self) -> None:
         _require(self.workers >= 0, "run.workers", f"must be >= 0 (0 = auto), got {self.workers}")
         _require(bool(self.scheduler), "run.scheduler", "must not be empty")
+        _require(bool(self.workdir), "run.workdir", "must not be empty")
+        _require(not Path(self.workdir).exists() or Path(self.workdir).is_dir(), "run.workdir",
+                 f"{self.workdir} is a file; it must name a folder (made if missing)")
 
 
 WALLTIME = re.compile(r"^(\d+-)?\d+:\d{2}:\d{2}$")
@@ -230,6 +242,7 @@ def _coerce(value, annotation, key: str):
         return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
     if annotation is float:
         _require(isinstance(value, (int, float)) and not isinstance(value, bool), key, f"expected a number, got {value!r}")
+        _require(math.isfinite(value), key, f"must be a finite number, got {value!r}")
         return float(value)
     _require(isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
              key, f"expected {annotation.__name__}, got {value!r}")

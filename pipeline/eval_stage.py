@@ -63,6 +63,9 @@ def named_weights(specs: list[str]) -> list[tuple[str | None, Path]]:
     named = []
     for spec in specs:
         name, sep, rest = spec.partition("=")
+        if not spec or (sep and not Path(spec).exists() and not (name and rest)):
+            raise EvalStageError(f"--weights {spec!r}: give a weights file, PATH or NAME=PATH with both a column "
+                                 "name and a file")
         if sep and not Path(spec).exists():
             named.append((name, Path(rest)))
         else:

@@ -19,10 +19,18 @@ from admc.stores import patches
 from admc.stores.atomic import read_json
 
 TILE_CODE = code_version(tile, transforms, oidn_base, patches)
+CACHED_STAGES = ("render", "tile")
+"""The stages whose tasks the cache holds: render.render_tasks' and build_dataset's."""
 
 
 class StageError(AdmcError, RuntimeError):
     """A stage cannot run as asked (e.g. tiling renders that do not exist yet)."""
+
+
+def check_cached_stage(stage: str | None) -> None:
+    """Refuse a stage name the cache never holds (`cache --stage renders` would match nothing, silently)."""
+    if stage is not None and stage not in CACHED_STAGES:
+        raise StageError(f"--stage {stage!r}: not a cached stage; the stages are {', '.join(CACHED_STAGES)}")
 
 
 def open_cache(cfg: Config) -> StageCache:

@@ -86,7 +86,12 @@ def _check_split(split: str) -> None:
 def _open_root(path: Path) -> zarr.Group:
     if not exists(path):
         raise PatchStoreError(f"{path}: no patch store here (create_store first)")
-    root = zarr.open_group(store=LocalStore(path, read_only=True), mode="r")
+    try:
+        root = zarr.open_group(store=LocalStore(path, read_only=True), mode="r")
+    except Exception as exc:  # zarr raises whatever its JSON or metadata parser does
+        raise PatchStoreError(f"{path / 'zarr.json'}: the store's root metadata cannot be read ({type(exc).__name__}: "
+                              f"{exc}); move the store away (or delete it) and run `admc-pipe dataset` to tile it "
+                              "again from the cached renders") from None
     if root.attrs.get("format") != FORMAT:
         raise PatchStoreError(f"{path}: not an {FORMAT} store (format={root.attrs.get('format')!r})")
     version = root.attrs.get("format_version")
