@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
@@ -346,5 +347,12 @@ def show_config(config: ConfigOpt = None, set_: SetOpt = None) -> None:
     typer.echo(config_mod.config_toml(_load(config, set_)), nl=False)
 
 
+def _terminated(signum, frame) -> None:
+    """SIGTERM (kill, a batch system's time limit) unwinds like Ctrl-C: a file being written is removed
+    rather than left half-written under its temporary name."""
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _terminated)
     app()
