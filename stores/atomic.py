@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from admc.errors import AdmcError
+from admc.errors import USER_ERRNOS, AdmcError
 
 
 class JsonFileError(AdmcError, ValueError):
@@ -56,8 +56,8 @@ def publishing(path: Path) -> Iterator[Path]:
     """Yield a temporary sibling path to write; on success fsync it and rename it onto `path`.
 
     On an exception the temporary file is removed and the exception propagates; `path` is untouched.
-    A failure the file system caused (an OSError, or a library's error raised from one: write through a
-    Python file object so that it is) becomes one WriteError naming `path`.
+    A write the file system refused (an OSError of USER_ERRNOS, or a library's error raised from one: write
+    through a Python file object so that it is) becomes one WriteError naming `path`.
     """
     path = Path(path)
     tmp = temp_sibling(path)
@@ -73,7 +73,8 @@ def publishing(path: Path) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
         cause = _os_cause(exc)
-        if cause is None or isinstance(exc, AdmcError) or not isinstance(exc, Exception):
+        refused = cause is not None and cause.errno in USER_ERRNOS
+        if not refused or isinstance(exc, AdmcError) or not isinstance(exc, Exception):
             raise
         raise WriteError(f"{path}: cannot be written ({cause.strerror or cause})") from exc
 
