@@ -1,6 +1,7 @@
 """User errors as a person meets them through `admc-pipe`: one message naming the file or key and the problem,
 a non-zero exit, no traceback; and bugs (anything but admc.errors.AdmcError) keep theirs."""
 import dataclasses
+import json
 import os
 import shutil
 import signal
@@ -227,4 +228,6 @@ def test_a_damaged_render_sidecar_is_rendered_again(tiny_workdir, tmp_path):
     sidecar.write_text(whole[:20])
     out = run("render", *flags(settings(tmp_path)))
     assert out.returncode == 0, out.stderr
-    assert "(1 rendered now" in out.stdout and sidecar.read_text() == whole
+    assert "(1 rendered now" in out.stdout
+    rendered, before = json.loads(sidecar.read_text()), json.loads(whole)
+    assert (rendered["scene_id"], rendered["spp"]) == (before["scene_id"], before["spp"])
