@@ -151,7 +151,8 @@ def _folder(path: Path) -> Path:
 
 def test_denoise_onto_a_full_disk(tmp_path):
     frame = _oidn_style_input(tmp_path)
-    out = with_file_size_limit(100, "denoise", str(frame), "--weights", str(SHIPPED))
+    # torch runs the networks in process: the ONNX engines write their graphs first, and those would fail
+    out = with_file_size_limit(100, "denoise", str(frame), "--weights", str(SHIPPED), "--engine", "torch")
     refused(out, f"{tmp_path / 'frame.denoised.exr'}: cannot be written (File too large)")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.alb.exr", "frame.hdr.exr", "frame.nrm.exr"]
 
