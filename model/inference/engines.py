@@ -8,8 +8,6 @@ float32 0.72 s and OpenVINO bf16 0.31 s (STACK_NOTES.md; docs/engines.md).
 """
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -19,7 +17,7 @@ from admc.common.layout import ENGINE_CHOICES, ENGINES
 from admc.errors import AdmcError
 
 from ..precision import resolve_precision
-from .export import export_generator
+from .export import generator_graph
 
 class EngineError(AdmcError, ValueError):
     """An engine that does not exist, is not installed, or cannot run as asked (device, precision)."""
@@ -48,21 +46,22 @@ class OnnxGenerator:
     """An exported generator graph under ONNX Runtime or OpenVINO, called as `(noisy, features[, base])`
     with float tensors on the CPU; returns the float32 output tensor."""
 
-    def __init__(self, path: Path, engine: str, dtype: torch.dtype) -> None:
+    def __init__(self, graph: bytes, engine: str, dtype: torch.dtype) -> None:
         self.engine = engine
         if engine == "onnxruntime":
             import onnxruntime
 
             options = onnxruntime.SessionOptions()
             options.intra_op_num_threads = torch.get_num_threads()
-            self._session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+            self._session = onnxruntime.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
             self._names = [i.name for i in self._session.get_inputs()]
         else:
             import openvino
 
             precision = "bf16" if dtype == torch.bfloat16 else "f32"
-            self._compiled = openvino.Core().compile_model(
-                str(path), "CPU", {"INFERENCE_PRECISION_HINT": precision, "PERFORMANCE_HINT": "LATENCY",
+            core = openvino.Core()
+            self._compiled = core.compile_model(
+                core.read_model(graph), "CPU", {"INFERENCE_PRECISION_HINT": precision, "PERFORMANCE_HINT": "LATENCY",
                                    "INFERENCE_NUM_THREADS": torch.get_num_threads()})
             self._request = self._compiled.create_infer_request()
 
@@ -82,11 +81,5 @@ def default_precision(engine: str, device: torch.device) -> torch.dtype:
 
 
 def onnx_generators(generators: dict[str, nn.Module], engine: str, dtype: torch.dtype) -> dict[str, OnnxGenerator]:
-    """Each generator exported to ONNX and loaded into `engine` (the graphs live in memory afterwards)."""
-    with tempfile.TemporaryDirectory(prefix="admc-onnx-") as folder:
-        runners = {}
-        for branch, generator in generators.items():
-            path = Path(folder) / f"{branch}.onnx"
-            export_generator(generator, path)
-            runners[branch] = OnnxGenerator(path, engine, dtype)
-    return runners
+    """Each generator exported to ONNX and loaded into `engine`, in memory (no file is written)."""
+    return {branch: OnnxGenerator(generator_graph(generator), engine, dtype) for branch, generator in generators.items()}

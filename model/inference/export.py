@@ -10,6 +10,7 @@ do it in its own code; docs/engines.md spells it out.
 from __future__ import annotations
 
 import copy
+import io
 import warnings
 from pathlib import Path
 
@@ -33,7 +34,12 @@ def input_names(generator: Generator) -> list[str]:
 
 
 def export_generator(generator: Generator, path: Path) -> None:
-    """Write `generator` (float32, on the CPU; the module itself is left as it is) as an ONNX graph at `path`.
+    """Write `generator` as an ONNX graph (generator_graph) at `path`."""
+    Path(path).write_bytes(generator_graph(generator))
+
+
+def generator_graph(generator: Generator) -> bytes:
+    """`generator` (float32, on the CPU; the module itself is left as it is) as a serialised ONNX graph.
 
     The trace runs on a small example with height and width marked dynamic; the darkness gate traces
     as max pooling (generator.light_within), which is the same dilation for any size."""
@@ -42,10 +48,12 @@ def export_generator(generator: Generator, path: Path) -> None:
     size = 2 * module.alignment * 4
     example = tuple(torch.rand(1, 3 if name != "features" else len(FEATURE_CHANNELS), size, size) for name in names)
     dynamic = {name: {2: "height", 3: "width"} for name in [*names, "denoised"]}
+    graph = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the tracer's warnings about shape checks turned into constants
-        torch.onnx.export(module, example, str(path), input_names=names, output_names=["denoised"],
+        torch.onnx.export(module, example, graph, input_names=names, output_names=["denoised"],
                           dynamic_axes=dynamic, opset_version=OPSET, dynamo=False)
+    return graph.getvalue()
 
 
 def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float]) -> dict:
