@@ -210,7 +210,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
                                                        "of the input: less error, that many times the time.")] = 1,
             dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
-                                                         "them from there (eval's default): up to twice the "
+                                                         "them from there (Table 1's admc-ens4+dark row): up to twice the "
                                                          "time.")] = False,
             engine: Annotated[Optional[str], typer.Option(help="What runs the networks: auto (openvino on a CPU, "
                                                                "torch on a GPU) | torch | onnxruntime | openvino "
