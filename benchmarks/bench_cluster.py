@@ -3,7 +3,7 @@ memory of tiling as the corpus grows (tiling streams one scene at a time, so it 
 
 Throughput: each worker count gets a fresh workdir and an already started, warmed-up cluster (every
 worker has imported Mitsuba and rendered a throwaway corpus, so JIT compilation is not timed); the
-clock covers rendering the corpus through the stage cache. Tiling memory: the corpus is rendered,
+clock covers rendering the corpus through the task cache. Tiling memory: the corpus is rendered,
 then `admc-pipe tile` (renders nothing, sync scheduler) runs in a child process whose peak RSS is read.
 
     python benchmarks/bench_cluster.py                                  # 1 and 2 workers, 8 scenes at 64x64
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from admc.pipeline.config import load_config
 from admc.pipeline.render.variants import use_variant
-from admc.pipeline.stages import render_corpus
+from admc.pipeline.stages.render import render_corpus
 from admc.stores.patches import store_summary
 
 SMALL = ["render.resolution=[64, 64]", "render.spp=[4, 16]", "render.reference_spp=64", "corpus.n_scenes=8",

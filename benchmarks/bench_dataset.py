@@ -11,7 +11,8 @@ import time
 from pathlib import Path
 
 from admc.pipeline.config import load_config
-from admc.pipeline.stages import build_dataset, open_cache
+from admc.pipeline.stages.corpus import open_cache
+from admc.pipeline.stages.dataset import build_dataset
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ from admc.model.training import distributed
 from admc.model.training.trainer import train
 from admc.pipeline.config import load_config
 from admc.pipeline.render.variants import use_variant
-from admc.pipeline.stages import build_dataset
+from admc.pipeline.stages.dataset import build_dataset
 
 STORE = ["run.scheduler=sync", "render.resolution=[128, 128]", "render.spp=[4]", "render.reference_spp=32",
          "corpus.n_scenes=6", "tile.patch_size=64", "tile.crops_per_scene=4", "tile.split=[0.5, 0.5, 0.0]"]

@@ -17,7 +17,7 @@ the copy back to the host), "total" adds sanitising and the NumPy transforms. Af
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
 OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and
-the ONNX engines run on a CPU only (model/engines.py). By default the image runs in the denoiser's own tiles with the
+the ONNX engines run on a CPU only (model/inference/engines.py). By default the image runs in the denoiser's own tiles with the
 receptive-field halo (tiling.default_tile: 320 on a CPU, 512 on a GPU, at least 8 halos), as
 `admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
 2-core CPU is about twice as slow at 1280x720 (whole-image convs leave the caches).

@@ -55,7 +55,7 @@ def _load(config: Optional[Path], overrides: Optional[list[str]], scheduler: Opt
 @_user_errors
 def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
     """Render the scene corpus: one multi-layer EXR + JSON sidecar per (scene, spp), plus a reference."""
-    from admc.pipeline.stages import render_corpus
+    from admc.pipeline.stages.render import render_corpus
 
     cfg = _load(config, set_, scheduler)
     result = render_corpus(cfg)
@@ -117,7 +117,7 @@ def _print_dataset(result, workdir: str) -> None:
 def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
             summary: Annotated[bool, typer.Option("--summary", help="Only summarise the existing store.")] = False) -> None:
     """Render + tile as one graph: the corpus into the 128x128 FP16 Zarr patch store (cached, incremental)."""
-    from admc.pipeline.stages import build_dataset, existing_dataset
+    from admc.pipeline.stages.dataset import build_dataset, existing_dataset
 
     cfg = _load(config, set_, scheduler)
     result = existing_dataset(cfg) if summary else build_dataset(cfg)
@@ -130,7 +130,7 @@ def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerO
 @_user_errors
 def tile(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
     """Tile already-rendered EXR sets into the patch store (renders nothing: run `render` first)."""
-    from admc.pipeline.stages import build_dataset
+    from admc.pipeline.stages.dataset import build_dataset
 
     cfg = _load(config, set_, scheduler)
     result = build_dataset(cfg, render_missing=False)
@@ -156,7 +156,7 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
 
     An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer).
     Several processes (--nproc N, or `torchrun --nproc_per_node N -m admc.cli train ...`) split each batch."""
-    from admc.pipeline.train_stage import interrupted_note, run_training
+    from admc.pipeline.stages.train import interrupted_note, run_training
 
     cfg = _load(config, set_, scheduler)
     try:
@@ -218,8 +218,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                                "eval.engine.")] = None,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
-    from admc.pipeline.train_stage import load_model
-    from admc.pipeline.user_files import DenoiseInputError, check_output_path, load_denoise_input, output_paths
+    from admc.pipeline.stages.denoise import DenoiseInputError, check_output_path, load_denoise_input, output_paths
+    from admc.pipeline.weights import load_model
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -250,7 +250,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
 
 def _denoise_one(model, path: Path, source, target: Path) -> None:
     """Denoise one checked input into `target` and say what was done to it."""
-    from admc.pipeline.user_files import write_denoised
+    from admc.pipeline.stages.denoise import write_denoised
 
     result = model(source.layers)
     write_denoised(target, result, source=source)
@@ -285,7 +285,7 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
                                                  "and OptiX where CUDA runs).")] = False) -> None:
     """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
     time, an HTML page."""
-    from admc.pipeline.eval_stage import learned_denoisers, run_eval
+    from admc.pipeline.stages.evaluate import learned_denoisers, run_eval
 
     cfg = _load(config, set_, scheduler)
     if no_model and weights:
@@ -307,7 +307,7 @@ def export(weights: Annotated[Path, typer.Argument(help="Weights or checkpoint f
                                                  "(created; other files in it are kept).")]) -> None:
     """Both branches' generators as ONNX graphs (dynamic height and width) and admc.json, what runs around
     them: to run admc in a renderer without Python (docs/engines.md)."""
-    from admc.pipeline.export import export_onnx
+    from admc.pipeline.stages.export import export_onnx
 
     for path in export_onnx(weights, out_dir):
         console.print(f"wrote {path}", markup=False)
@@ -319,7 +319,7 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
           clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
           stage: Annotated[Optional[str], typer.Option(help="Only this stage: render or tile.")] = None) -> None:
     """Show what is cached (per stage: entries and size), or clear it."""
-    from admc.pipeline.stages import check_cached_stage, open_cache
+    from admc.pipeline.stages.corpus import check_cached_stage, open_cache
 
     check_cached_stage(stage)
     cfg = _load(config, set_)

@@ -29,9 +29,10 @@ from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.evaluation.inputs import by_scene, find_test_images, read_reference
 from admc.pipeline.evaluation.records import EvalError
+from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.exr import read_exr
 
-SHIPPED = Path(__file__).resolve().parents[1] / "weights" / "admc-small-pretrained.pt"
+SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"
 METHODS = ("oidn", "admc", "mean", "mean, environment from admc")
 
 

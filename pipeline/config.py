@@ -181,7 +181,7 @@ WALLTIME = re.compile(r"^(\d+-)?\d+:\d{2}:\d{2}$")
 
 @dataclass(frozen=True)
 class ClusterConfig:
-    """The SLURM jobs `run.scheduler = "slurm"` submits (pipeline/slurm.py): one dask worker per job."""
+    """The SLURM jobs `run.scheduler = "slurm"` submits (pipeline/engine/slurm.py): one dask worker per job."""
 
     jobs: int
     cores: int

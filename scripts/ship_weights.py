@@ -14,9 +14,8 @@ import shutil
 from pathlib import Path
 
 from admc.model.nets.settings import ModelSettings
+from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.checkpoints import load_checkpoint, load_weights
-
-WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 
 
 def shipped_validation(run: Path, selected: dict) -> dict:
@@ -39,15 +38,15 @@ def main() -> None:
     args = parser.parse_args()
     weights = load_weights(args.run / "weights-fp16.pt")
     checkpoint = load_checkpoint(args.run / "checkpoint.pt")
-    target = WEIGHTS / f"{args.name}.pt"
-    WEIGHTS.mkdir(exist_ok=True)
+    target = WEIGHTS_DIR / f"{args.name}.pt"
+    WEIGHTS_DIR.mkdir(exist_ok=True)
     shutil.copyfile(args.run / "weights-fp16.pt", target)
     entry = {"file": target.name, "model": weights["metadata"]["model"], "stage": checkpoint["stage"],
              "steps": checkpoint["step"], "settings": checkpoint["settings"],
              "selected": weights["metadata"].get("selected", {}),
              "validation": shipped_validation(args.run, weights["metadata"].get("selected", {})), "note": args.note,
              "sha256": hashlib.sha256(target.read_bytes()).hexdigest(), "bytes": target.stat().st_size}
-    manifest_path = WEIGHTS / "manifest.json"
+    manifest_path = WEIGHTS_DIR / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"weights": []}
     same = ModelSettings.from_saved(entry["model"])  # one shipped file per architecture: replace its entry
     manifest["weights"] = [e for e in manifest["weights"] if ModelSettings.from_saved(e["model"]) != same] + [entry]

@@ -55,7 +55,7 @@ def tiny_store_overrides(workdir, size: int, patch: int) -> list[str]:
 def build_tiny_store(workdir, size: int, patch: int):
     """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data."""
     from admc.pipeline.config import load_config
-    from admc.pipeline.stages import build_dataset
+    from admc.pipeline.stages.dataset import build_dataset
 
     cfg = load_config(None, tiny_store_overrides(workdir, size, patch))
     return build_dataset(cfg, progress=False).store

@@ -1,4 +1,4 @@
-"""Stage cache and dask runner: real tasks writing real files, interrupted and resumed.
+"""Task cache and dask runner: real tasks writing real files, interrupted and resumed.
 
 Task functions are module-level so the process scheduler can pickle them. Every call appends a
 file to a log folder outside the cache, so a test can count exactly which tasks ran.
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from admc.pipeline.cache import StageCache, Task, TaskError, code_version
-from admc.pipeline.runner import collect, default_workers, run
+from admc.pipeline.engine.cache import Task, TaskCache, TaskError, code_version
+from admc.pipeline.engine.runner import collect, default_workers, run
 
 TESTS_DIR = Path(__file__).parent
 
@@ -52,7 +52,7 @@ def graph(log: Path) -> dict[str, Task]:
 def run_graph(cache_root: str, log: str, scheduler: str = "sync", workers=None) -> dict:
     """Entry point for the subprocess tests."""
     tasks = graph(Path(log))
-    return run([tasks["d"], tasks["e"]], StageCache(Path(cache_root)), scheduler=scheduler, workers=workers,
+    return run([tasks["d"], tasks["e"]], TaskCache(Path(cache_root)), scheduler=scheduler, workers=workers,
                progress=False)
 
 
@@ -67,7 +67,7 @@ def totals(published: dict, tasks: dict) -> dict:
     return {name: float((published[t.key] / "total.txt").read_text()) for name, t in tasks.items()}
 
 
-def tmp_leftovers(cache: StageCache) -> list[str]:
+def tmp_leftovers(cache: TaskCache) -> list[str]:
     return sorted(p.name for p in cache.tmp_root.iterdir()) if cache.tmp_root.exists() else []
 
 
@@ -132,7 +132,7 @@ def test_collect_dedupes_and_orders_upstream_first(log):
 # --- cache ------------------------------------------------------------------------------------------
 
 def test_run_task_publishes_with_manifest_and_skips_when_done(tmp_path, log):
-    cache, a = StageCache(tmp_path / "cache"), graph(log)["a"]
+    cache, a = TaskCache(tmp_path / "cache"), graph(log)["a"]
     assert not cache.is_done(a)
     path = cache.run_task(a, {})
     assert path == tmp_path / "cache" / "alpha" / a.key and cache.is_done(a)
@@ -147,7 +147,7 @@ def test_run_task_publishes_with_manifest_and_skips_when_done(tmp_path, log):
 
 
 def test_failed_task_leaves_nothing_and_names_itself(tmp_path, log):
-    cache, a = StageCache(tmp_path / "cache"), graph(log)["a"]
+    cache, a = TaskCache(tmp_path / "cache"), graph(log)["a"]
     (log / "fail-a").touch()
     with pytest.raises(TaskError, match=r"alpha task 'a task' \(key \w+\) failed: RuntimeError: told to fail a"):
         cache.run_task(a, {})
@@ -159,7 +159,7 @@ def race(out_dir: Path, inputs: dict, *, log: str) -> dict:
     marker = Path(log) / "race"
     if marker.exists():
         marker.unlink()
-        StageCache(Path(log).parent / "cache").run_task(Task("alpha", "race", race, params={"log": log}), {})
+        TaskCache(Path(log).parent / "cache").run_task(Task("alpha", "race", race, params={"log": log}), {})
         (out_dir / "who").write_text("slow")
         return {"who": "slow"}
     (out_dir / "who").write_text("fast")
@@ -167,7 +167,7 @@ def race(out_dir: Path, inputs: dict, *, log: str) -> dict:
 
 
 def test_second_publisher_of_a_key_discards_its_output(tmp_path, log):
-    cache = StageCache(tmp_path / "cache")
+    cache = TaskCache(tmp_path / "cache")
     (log / "race").touch()
     path = cache.run_task(Task("alpha", "race", race, params={"log": str(log)}), {})
     assert (path / "who").read_text() == "fast" and cache.summary(Task("alpha", "race", race,
@@ -176,7 +176,7 @@ def test_second_publisher_of_a_key_discards_its_output(tmp_path, log):
 
 
 def test_entries_and_clear_by_stage(tmp_path, log):
-    cache = StageCache(tmp_path / "cache")
+    cache = TaskCache(tmp_path / "cache")
     tasks = graph(log)
     run(list(tasks.values()), cache, progress=False)
     entries = cache.entries()
@@ -186,15 +186,15 @@ def test_entries_and_clear_by_stage(tmp_path, log):
     assert cache.clear("beta") == 2
     assert not cache.is_done(tasks["c"]) and cache.is_done(tasks["a"]) and len(cache.entries()) == 3
     assert cache.clear() == 3 and cache.entries() == [] and tmp_leftovers(cache) == []
-    assert StageCache(tmp_path / "nowhere").entries() == []
+    assert TaskCache(tmp_path / "nowhere").entries() == []
 
 
 def test_clean_stale_tmp_keeps_live_runs(tmp_path, log):
-    cache = StageCache(tmp_path / "cache")
+    cache = TaskCache(tmp_path / "cache")
     cache.run_task(graph(log)["a"], {})
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    from admc.pipeline.cache import _host_id
+    from admc.pipeline.engine.cache import _host_id
     live = cache.tmp_root / f"{'0' * 20}.{_host_id()}.{os.getpid()}.abcd1234"
     stale = cache.tmp_root / f"{'1' * 20}.{_host_id()}.{dead.pid}.abcd1234"
     for folder in (live, stale):
@@ -207,7 +207,7 @@ def test_clean_stale_tmp_keeps_live_runs(tmp_path, log):
 # --- runner -----------------------------------------------------------------------------------------
 
 def test_sync_run_executes_each_task_once_then_nothing(tmp_path, log, capfd):
-    cache, tasks = StageCache(tmp_path / "cache"), graph(log)
+    cache, tasks = TaskCache(tmp_path / "cache"), graph(log)
     published = run([tasks["d"], tasks["e"]], cache, progress=False)
     assert set(published) == {t.key for t in tasks.values()}
     assert totals(published, tasks) == {"a": 1.0, "b": 2.0, "c": 13.0, "d": 114.0, "e": 5.0}
@@ -218,7 +218,7 @@ def test_sync_run_executes_each_task_once_then_nothing(tmp_path, log, capfd):
 
 
 def test_threads_scheduler_and_progress_output(tmp_path, log, capfd):
-    cache, tasks = StageCache(tmp_path / "cache"), graph(log)
+    cache, tasks = TaskCache(tmp_path / "cache"), graph(log)
     published = run([tasks["d"], tasks["e"]], cache, scheduler="threads", workers=2, progress=True)
     assert totals(published, tasks)["d"] == 114.0 and calls(log) == list("abcde")
     err = capfd.readouterr().err
@@ -226,7 +226,7 @@ def test_threads_scheduler_and_progress_output(tmp_path, log, capfd):
 
 
 def test_failure_keeps_published_tasks_and_rerun_runs_only_the_rest(tmp_path, log):
-    cache, tasks = StageCache(tmp_path / "cache"), graph(log)
+    cache, tasks = TaskCache(tmp_path / "cache"), graph(log)
     (log / "fail-c").touch()
     with pytest.raises(TaskError, match=r"(?s)1 task\(s\) failed, 1 skipped.*3 of 5 are published.*'c task'") as info:
         run([tasks["d"], tasks["e"]], cache, progress=False)
@@ -241,7 +241,7 @@ def test_failure_keeps_published_tasks_and_rerun_runs_only_the_rest(tmp_path, lo
 
 
 def test_sigkill_mid_task_leaves_no_published_half_output(tmp_path, log):
-    cache, tasks = StageCache(tmp_path / "cache"), graph(log)
+    cache, tasks = TaskCache(tmp_path / "cache"), graph(log)
     (log / "slow-c").touch()
     env = {**os.environ, "PYTHONPATH": str(TESTS_DIR)}
     script = f"import test_cache_runner as t; t.run_graph({str(cache.root)!r}, {str(log)!r})"
@@ -274,7 +274,7 @@ def test_sigkill_mid_task_leaves_no_published_half_output(tmp_path, log):
 def test_processes_scheduler_fails_then_resumes_on_a_scheduler_address(tmp_path, log):
     from distributed import LocalCluster
 
-    cache, tasks = StageCache(tmp_path / "cache"), graph(log)
+    cache, tasks = TaskCache(tmp_path / "cache"), graph(log)
     (log / "fail-c").touch()
     with pytest.raises(TaskError, match=r"'c task'.*told to fail c"):
         run([tasks["d"], tasks["e"]], cache, scheduler="processes", workers=2, progress=False)

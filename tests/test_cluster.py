@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import zarr
 
-from admc.pipeline.cache import MANIFEST, TMP_DIR
+from admc.pipeline.engine.cache import MANIFEST, TMP_DIR
 from admc.stores.exr import read_exr
 
 pytestmark = pytest.mark.slow

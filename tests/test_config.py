@@ -89,7 +89,7 @@ def test_model_and_train_errors_name_the_key(override, key):
 def test_pretrain_corpora_are_disjoint_from_the_default_corpus_and_have_their_families():
     """pretrain.toml: the three original families; broad.toml: every family but the held-out ones."""
     from admc.pipeline.render.scenes import FAMILIES
-    from admc.pipeline.render.stage import corpus
+    from admc.pipeline.render.tasks import corpus
 
     default = load_config()
     for name, families in (("pretrain", {"room", "tabletop", "studio"}),

@@ -21,7 +21,8 @@ from admc.model.training import distributed
 from admc.model.training.settings import TrainSettings
 from admc.model.training.trainer import train
 from admc.pipeline.config import load_config
-from admc.pipeline.train_stage import run_training, train_dir
+from admc.pipeline.stages.train import run_training
+from admc.pipeline.weights import train_dir
 from admc.stores.checkpoints import load_checkpoint
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.pipeline.config import load_config
-from admc.pipeline.stages import render_corpus
+from admc.pipeline.stages.render import render_corpus
 from admc.stores.exr import read_exr
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "make_domain_scenes.py"

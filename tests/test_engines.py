@@ -10,7 +10,7 @@ from admc.model.inference.denoiser import load_denoiser
 from admc.model.inference.engines import EngineError, OnnxGenerator
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
-from admc.pipeline.train_stage import WEIGHTS_DIR
+from admc.pipeline.weights import WEIGHTS_DIR
 
 SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"
 BF16_ERROR_RATIO = 2.0

@@ -9,9 +9,9 @@ import pytest
 
 from admc.common.metrics import METRICS
 from admc.pipeline.config import load_config
-from admc.pipeline.eval_stage import REPORT_SCENES, EvalStageError, eval_scenes, run_eval
 from admc.pipeline.evaluation.baselines import optix_unavailable_reason
 from admc.pipeline.evaluation.html import ReportImage, report_group
+from admc.pipeline.stages.evaluate import REPORT_SCENES, EvalStageError, eval_scenes, run_eval
 from admc.stores.exr import read_image
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
@@ -107,7 +107,7 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
 
 
 def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
-    from admc.pipeline.eval_stage import named_weights
+    from admc.pipeline.stages.evaluate import named_weights
     # one unnamed file: named after the base it records when loaded ("admc" or "admc+oidn")
     assert named_weights(["runs/a/weights-fp16.pt"]) == [(None, Path("runs/a/weights-fp16.pt"))]
     assert [n for n, _ in named_weights(["runs/a/weights-fp16.pt", "base=x.pt"])] == ["admc-a", "base"]
@@ -117,9 +117,9 @@ def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
 
 @pytest.mark.parametrize("ensemble,dark_pass,rows", [(1, "false", 2), (4, "true", 1)])
 def test_the_ensemble_and_dark_pass_row_has_its_own_name_and_settings(tmp_path, ensemble, dark_pass, rows):
-    from admc.pipeline.eval_stage import learned_denoisers
-    from admc.pipeline.train_stage import WEIGHTS_DIR
     from admc.pipeline.evaluation.evaluate import _check_denoisers
+    from admc.pipeline.stages.evaluate import learned_denoisers
+    from admc.pipeline.weights import WEIGHTS_DIR
     cfg = load_config(None, overrides(tmp_path) + [f"eval.ensemble={ensemble}", f"eval.dark_pass={dark_pass}",
                                                    "eval.also_ensemble_dark=true"])
     models = learned_denoisers(cfg, [str(WEIGHTS_DIR / "admc-small-pretrained.pt")], device="cpu")

@@ -15,14 +15,14 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
-from admc.pipeline.eval_stage import ReportFigures
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
                                                 noisy_color, optix_unavailable_reason, time_denoiser)
 from admc.pipeline.evaluation.evaluate import evaluate
 from admc.pipeline.evaluation.inputs import find_test_images, read_reference
 from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percent
-from admc.pipeline.render.stage import view_space_normals
-from admc.pipeline.stages import render_corpus
+from admc.pipeline.render.tasks import view_space_normals
+from admc.pipeline.stages.evaluate import ReportFigures
+from admc.pipeline.stages.render import render_corpus
 from admc.stores.exr import BEAUTY, exr_layers, read_exr, read_image, write_exr
 
 METRIC_KEYS = [m.key for m in METRICS]

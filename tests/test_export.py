@@ -10,8 +10,8 @@ from test_cli import run
 from test_user_errors_cli import refused
 
 from admc.model.inference.denoiser import load_denoiser
-from admc.pipeline.export import export_onnx
-from admc.pipeline.train_stage import WEIGHTS_DIR
+from admc.pipeline.stages.export import export_onnx
+from admc.pipeline.weights import WEIGHTS_DIR
 
 FLOAT32_LOG_TOLERANCE = 1e-3
 """ONNX Runtime sums each conv's n products in another order than torch: float32 rounding of at most

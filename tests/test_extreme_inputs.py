@@ -7,7 +7,6 @@ worse than their noisy input, exactly zero far from any light, and without a fra
 """
 import dataclasses
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,12 +22,13 @@ from admc.model.transforms import diffuse_forward, specular_forward, transform_s
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
 from admc.pipeline.evaluation.evaluate import evaluate
 from admc.pipeline.evaluation.records import TestImage
+from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.checkpoints import export_weights
 from admc.stores.exr import read_image, write_exr
 from test_inference import log_tolerance
 
 TINY = ModelSettings(channels=8, blocks=1, cond_channels=8, encoder_channels=8, critic_channels=4)
-SHIPPED = Path(__file__).resolve().parents[1] / "weights" / "admc-small-pretrained.pt"
+SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"
 
 
 def scene(h, w, rng, *, spp=1, specular=True):
@@ -109,7 +109,7 @@ def test_real_one_spp_renders_through_eval(model, variant, tmp_path):
     """1 spp from the real integrator (the stiffest input a user can render), not a synthetic stand-in."""
     from admc.pipeline.config import load_config
     from admc.pipeline.evaluation.inputs import find_test_images
-    from admc.pipeline.stages import render_corpus
+    from admc.pipeline.stages.render import render_corpus
 
     cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
                              "render.spp=[1]", "render.reference_spp=64", "corpus.n_scenes=2"])
@@ -160,7 +160,7 @@ def _render(scene_dict: dict, spp: int, seed: int) -> dict[str, np.ndarray]:
 
     from admc.pipeline.render import integrator
     from admc.pipeline.render.scenes import analyse
-    from admc.pipeline.render.stage import view_space_normals
+    from admc.pipeline.render.tasks import view_space_normals
 
     scene = mi.load_dict(scene_dict)
     layers = integrator.render_buffers(scene, spp, seed, split=analyse(scene).has_specular)

@@ -5,10 +5,10 @@ from pathlib import Path
 import pytest
 
 from admc.pipeline.config import ConfigError, load_config
-from admc.pipeline.eval_stage import eval_scenes
-from admc.pipeline.render import stage as render
+from admc.pipeline.render import tasks as render
 from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, OOD_CONSTRUCTS, SceneSpec, analyse, load_scene, scene_hash
 from admc.pipeline.render.scenes.ood import LAYOUTS, OOD_NAMES
+from admc.pipeline.stages.evaluate import eval_scenes
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 OOD = ["eval.split=ood"]
@@ -66,8 +66,9 @@ def test_checkpoints_can_be_selected_on_the_ood_set(tmp_path):
     out-of-family set, the corpus is all train; a store whose val split holds other scenes is refused."""
     from conftest import tiny_store_overrides
 
-    from admc.pipeline.stages import StageError, build_dataset
-    from admc.pipeline.train_stage import check_splits
+    from admc.pipeline.stages.corpus import StageError
+    from admc.pipeline.stages.dataset import build_dataset
+    from admc.pipeline.stages.train import check_splits
     from admc.stores import patches
 
     overrides = tiny_store_overrides(tmp_path, 32, 32) + ["tile.split=[1.0, 0.0, 0.0]", "eval.ood_scenes_per_family=1"]

@@ -17,7 +17,7 @@ from admc.model.nets.settings import ModelSettings
 from admc.model.training.settings import small_settings
 from admc.model.training.trainer import train
 from admc.pipeline.config import ConfigError, load_config
-from admc.pipeline.stages import build_dataset
+from admc.pipeline.stages.dataset import build_dataset
 from admc.stores import exr, patches
 from admc.stores.patches import PatchReader, PatchStoreError
 from conftest import tiny_store_overrides
@@ -141,7 +141,7 @@ def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn(store_with_b
 def test_fine_tuning_refuses_weights_of_the_other_base():
     from admc.errors import TrainingError
     from admc.model.training.resume import load_init
-    from admc.pipeline.train_stage import shipped_weights
+    from admc.pipeline.weights import shipped_weights
 
     model = load_config(None, []).model
     noisy_weights = shipped_weights(model)

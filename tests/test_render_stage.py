@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from admc.pipeline.config import load_config
-from admc.pipeline.stages import open_cache, render_corpus
+from admc.pipeline.stages.corpus import open_cache
+from admc.pipeline.stages.render import render_corpus
 from admc.stores.exr import read_exr
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
@@ -78,7 +79,7 @@ def test_normals_are_in_view_space(variant):
     """Cornell box: the left wall faces right (+x), the ceiling down (-y); nothing visible faces away."""
     import mitsuba as mi
     from admc.pipeline.render import integrator
-    from admc.pipeline.render.stage import view_space_normals
+    from admc.pipeline.render.tasks import view_space_normals
 
     integrator.register()
     box = mi.cornell_box()

@@ -7,8 +7,8 @@ import sys
 import pytest
 
 from admc.errors import AdmcError
-from admc.pipeline import slurm
 from admc.pipeline.config import ConfigError, load_config
+from admc.pipeline.engine import slurm
 
 
 def _cfg(tmp_path, *overrides: str):
@@ -43,7 +43,7 @@ def test_defaults_book_no_gpu_and_leave_partition_and_account_to_the_site(tmp_pa
 
 
 def test_missing_extra_is_a_user_error_naming_the_key(tmp_path, monkeypatch, variant):
-    from admc.pipeline.stages import render_corpus
+    from admc.pipeline.stages.render import render_corpus
 
     monkeypatch.setitem(sys.modules, "dask_jobqueue", None)  # what `import dask_jobqueue` sees when it is absent
     cfg = _cfg(tmp_path, "corpus.n_scenes=1", "render.resolution=[8, 8]")

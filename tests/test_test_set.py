@@ -3,10 +3,10 @@ from pathlib import Path
 
 import pytest
 
-from admc.pipeline.render import stage as render
 from admc.pipeline.config import ConfigError, load_config
-from admc.pipeline.eval_stage import EvalStageError, eval_scenes
+from admc.pipeline.render import tasks as render
 from admc.pipeline.render.scenes import analyse, load_scene, scene_hash
+from admc.pipeline.stages.evaluate import EvalStageError, eval_scenes
 
 PRETRAIN = Path(__file__).resolve().parents[1] / "configs" / "pretrain.toml"
 BROAD = Path(__file__).resolve().parents[1] / "configs" / "broad.toml"

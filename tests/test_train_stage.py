@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from admc.pipeline.config import load_config
-from admc.pipeline.train_stage import shipped_weights
+from admc.pipeline.weights import shipped_weights
 from admc.stores.checkpoints import load_checkpoint, load_weights
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
@@ -194,7 +194,7 @@ def test_every_shipped_file_is_whole_and_is_the_architecture_its_entry_names():
     from admc.model.inference.denoiser import load_denoiser
     from admc.model.nets.settings import ModelSettings
     from admc.model.nets.unet import UNetGenerator
-    from admc.pipeline.train_stage import WEIGHTS_DIR
+    from admc.pipeline.weights import WEIGHTS_DIR
 
     entries = json.loads((WEIGHTS_DIR / "manifest.json").read_text())["weights"]
     assert {e["model"]["backbone"] for e in entries} == {"residual", "unet"}

@@ -15,7 +15,7 @@ from test_train_stage import flags, settings
 
 from admc.model.nets.settings import ModelSettings
 from admc.pipeline.config import load_config
-from admc.pipeline.train_stage import WEIGHTS_DIR
+from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.checkpoints import export_weights, load_checkpoint, load_weights
 
 SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"

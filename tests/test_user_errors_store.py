@@ -110,7 +110,7 @@ def test_a_patch_larger_than_an_xml_film_names_the_scene_file(tmp_path):
 
 def test_an_empty_store_left_by_a_failed_run_does_not_pin_its_patch_size(tmp_path, variant):
     from admc.pipeline.config import load_config
-    from admc.pipeline.stages import store_attributes
+    from admc.pipeline.stages.dataset import store_attributes
 
     overrides = tiny_store_overrides(tmp_path / "w", size=32, patch=32)
     store = tmp_path / "w" / "patches.zarr"

@@ -17,7 +17,7 @@ import numpy as np
 
 from admc.model import transforms as tf
 from admc.model.inference.oidn_base import describe as describe_oidn, oidn_bases
-from admc.pipeline.render.stage import EXR_NAME
+from admc.pipeline.render.tasks import EXR_NAME
 from admc.stores import exr, patches
 
 SPLITS = patches.SPLITS

@@ -1,118 +1,22 @@
-"""The product's stages as functions of a Config: what the CLI and `make` targets call."""
+"""`admc-pipe dataset`: the corpus rendered and tiled into the patch store, as one task graph."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import admc
-from admc.errors import AdmcError
 from admc.model import transforms
 from admc.model.inference import oidn_base
 from admc.model.nets.critic import DOWNSAMPLING
-from admc.pipeline import runner, slurm
-from admc.pipeline.cache import StageCache, Task, TaskError, code_version
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
-from admc.pipeline.render import stage as render
-from admc.pipeline.render.scenes import NotAScene, SceneError, SceneSpec
+from admc.pipeline.engine import runner
+from admc.pipeline.engine.cache import Task, code_version
+from admc.pipeline.render import tasks as render
+from admc.pipeline.render.scenes import SceneError, SceneSpec
+from admc.pipeline.stages.corpus import StageError, StageResult, open_cache, read_sidecars, run_corpus, skipped_files
 from admc.stores import patches
-from admc.stores.atomic import read_json
 
 TILE_CODE = code_version(tile, transforms, oidn_base, patches)
-CACHED_STAGES = ("render", "tile")
-"""The stages whose tasks the cache holds: render.render_tasks' and build_dataset's."""
-
-
-class StageError(AdmcError, RuntimeError):
-    """A stage cannot run as asked (e.g. tiling renders that do not exist yet)."""
-
-
-def check_cached_stage(stage: str | None) -> None:
-    """Refuse a stage name the cache never holds (`cache --stage renders` would match nothing, silently)."""
-    if stage is not None and stage not in CACHED_STAGES:
-        raise StageError(f"--stage {stage!r}: not a cached stage; the stages are {', '.join(CACHED_STAGES)}")
-
-
-def open_cache(cfg: Config) -> StageCache:
-    """The stage cache under run.workdir, as an absolute path: dask workers started in other folders
-    must write where this process reads."""
-    return StageCache((Path(cfg.run.workdir) / "cache").resolve())
-
-
-@dataclass
-class StageResult:
-    scenes: list[SceneSpec]
-    sidecars: list[dict]           # one per render, in corpus order
-    tiles: list[dict]              # one per scene (empty for render-only runs)
-    renders_dir: Path
-    store: Path | None
-    executed: int
-    cached: int
-    tasks: list[Task]              # every task of the run, upstream included (for their manifests)
-    retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
-    skipped: list[str] = field(default_factory=list)  # files in the scene folders that are no scene, and why
-
-    @property
-    def notes(self) -> list[str]:
-        """What the user should hear about besides the counts."""
-        retiled = [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
-        return self.skipped + retiled
-
-
-def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str, Path], int]:
-    """Run tasks (and what they depend on) through the stage cache; return published paths and how many were cached."""
-    store = open_cache(cfg)
-    cached = sum(store.is_done(t) for t in runner.collect(tasks).values())
-    with slurm.scheduler_address(cfg) as scheduler:
-        published = runner.run(tasks, store, scheduler=scheduler, workers=cfg.run.workers or None,
-                               progress=progress)
-    return published, cached
-
-
-def _sidecars(renders: dict[str, dict[str, Task]], published: dict[str, Path]) -> list[dict]:
-    return [read_json(published[t.key] / render.SIDECAR_NAME)
-            for levels in renders.values() for t in levels.values()]
-
-
-def _run_corpus(cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Task]], left_out: list[SceneError],
-                progress: bool) -> tuple[dict[str, Path], int, Path]:
-    """Run the corpus's tasks and link every fully rendered scene under workdir/renders; then fail
-    naming each failed task and each scene file left out, so the good scenes' work is done first."""
-    cache = open_cache(cfg)
-    try:
-        published, cached = run_cached(cfg, tasks, progress)
-        failure = None
-    except TaskError as error:
-        published, cached, failure = {}, 0, error
-    done = {scene_id: levels for scene_id, levels in renders.items() if all(map(cache.is_done, levels.values()))}
-    paths = {task.key: cache.path(task) for levels in done.values() for task in levels.values()}
-    renders_dir = render.link_renders(done, paths, Path(cfg.run.workdir) / "renders")
-    broken = [error for error in left_out if not isinstance(error, NotAScene)]
-    if failure is None and not broken:
-        return published, cached, renders_dir
-    report = [str(failure)] if failure is not None else []
-    if broken:
-        report += [f"{len(broken)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
-                   *(f"  {error}" for error in broken)]
-    report += [str(error) for error in left_out if isinstance(error, NotAScene)]
-    raise StageError("\n".join(report)) from failure
-
-
-def _skipped(left_out: list[SceneError]) -> list[str]:
-    return [str(error) for error in left_out if isinstance(error, NotAScene)]
-
-
-def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | None = None) -> StageResult:
-    """Render every (scene, spp) of the corpus (or of `specs`) not cached yet; link the EXRs under workdir/renders.
-
-    A broken scene file or a failed render does not stop the others: they finish first, then this raises."""
-    left_out: list[SceneError] = []
-    specs = render.corpus(cfg, left_out) if specs is None else specs
-    renders = render.render_tasks(cfg, specs)
-    tasks = [t for levels in renders.values() for t in levels.values()]
-    published, cached, renders_dir = _run_corpus(cfg, tasks, renders, left_out, progress)
-    return StageResult(specs, _sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached,
-                       tasks, skipped=_skipped(left_out))
 
 
 def store_attributes(cfg: Config) -> dict:
@@ -181,11 +85,11 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
         if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled):
             cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders
         tiles.append(task)
-    published, cached, renders_dir = _run_corpus(cfg, tiles, renders, left_out, progress)
+    published, cached, renders_dir = run_corpus(cfg, tiles, renders, left_out, progress)
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
-    return StageResult(specs, _sidecars(renders, published), summaries, renders_dir, store_path,
-                       len(everything) - cached, cached, everything, retiled, _skipped(left_out))
+    return StageResult(specs, read_sidecars(renders, published), summaries, renders_dir, store_path,
+                       len(everything) - cached, cached, everything, retiled, skipped_files(left_out))
 
 
 def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) -> bool:

@@ -1,4 +1,4 @@
-"""The stage cache: every task's output is a folder root/<stage>/<key>, published atomically.
+"""The task cache: every task's output is a folder root/<stage>/<key>, published atomically.
 
 A task's key hashes its stage, parameters, its inputs' keys and the version of its code, so a
 changed parameter, upstream output or stage implementation gives a new key (and the old output
@@ -113,7 +113,7 @@ class Task:
         return hash(self.key)
 
 
-class StageCache:
+class TaskCache:
     """Published task outputs under root/<stage>/<key>/, each with a `_task.json` manifest written last."""
 
     def __init__(self, root: Path):

@@ -18,11 +18,12 @@ from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenois
 from admc.pipeline.evaluation.inputs import find_test_images
 from admc.pipeline.evaluation.records import EvalResult, ScoredImage
 from admc.pipeline.evaluation.table1 import build_table1
-from admc.pipeline.render import stage as render
+from admc.pipeline.render import tasks as render
 from admc.pipeline.render import scenes
 from admc.pipeline.render.scenes import SceneSpec
-from admc.pipeline.stages import StageError, render_corpus
-from admc.pipeline.train_stage import default_weights, load_model
+from admc.pipeline.stages.corpus import StageError
+from admc.pipeline.stages.render import render_corpus
+from admc.pipeline.weights import default_weights, load_model
 
 REPORT_SCENES = 8  # scenes shown in the HTML page (every test image still counts in the tables)
 

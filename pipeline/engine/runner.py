@@ -1,7 +1,7 @@
 """Run a graph of cached Tasks on dask: in process, on threads, on a local process cluster or any scheduler.
 
 Tasks already published are not scheduled at all. The rest become one dask node each that calls
-`StageCache.run_task` with its inputs' published folders. A failing task does not stop the others:
+`TaskCache.run_task` with its inputs' published folders. A failing task does not stop the others:
 independent tasks finish and publish, dependents of the failed one are skipped, and the run then
 raises one TaskError listing every failed task (what it works on, the cause in one line), so the
 next run resumes with only what is left.
@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from admc.errors import AdmcError
-from admc.pipeline.cache import StageCache, Task, TaskError
+from admc.pipeline.engine.cache import Task, TaskCache, TaskError
 
 LOCAL_SCHEDULERS = ("sync", "threads")
 PROBE_TIMEOUT_S = 5.0  # for the first TCP connect only; a scheduler that answers keeps dask's own timeouts
@@ -70,7 +70,7 @@ def collect(tasks: list[Task]) -> dict[str, Task]:
     return ordered
 
 
-def run(tasks: list[Task], cache: StageCache, *, scheduler: str = "sync", workers: int | None = None,
+def run(tasks: list[Task], cache: TaskCache, *, scheduler: str = "sync", workers: int | None = None,
         progress: bool = True) -> dict[str, Path]:
     """Publish every task and its upstream tasks; return key -> published folder.
 
@@ -109,7 +109,7 @@ def _node_name(task: Task) -> str:
     return f"{task.stage}-{task.key}"
 
 
-def _run_node(cache: StageCache, task: Task, inputs: dict[str, Path | _Failed]) -> Path | _Failed:
+def _run_node(cache: TaskCache, task: Task, inputs: dict[str, Path | _Failed]) -> Path | _Failed:
     """One dask node: run the task unless an input failed; failures come back as values (keep going)."""
     lost = [name for name, value in inputs.items() if isinstance(value, _Failed)]
     if lost:

@@ -1,56 +1,21 @@
 """`admc-pipe train`: build (or reuse) the patch store, then pretrain or fine-tune both branches."""
 from __future__ import annotations
 
-import dataclasses
-import json
 import shutil
 from collections import Counter
 from pathlib import Path
 
-import admc
-from admc.common.diff import differing_keys
-from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
-from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
 from admc.model.training import distributed
 from admc.model.training.distributed import check_world
 from admc.model.training.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_fresh_start, train
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
-from admc.pipeline.render import stage as render
-from admc.pipeline.stages import StageError, build_dataset
+from admc.pipeline.render import tasks as render
+from admc.pipeline.stages.corpus import StageError
+from admc.pipeline.stages.dataset import build_dataset
+from admc.pipeline.weights import shipped_mismatch, shipped_weights, train_dir
 from admc.stores.checkpoints import load_checkpoint, read_networks
-
-WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
-
-
-def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
-    """(file, architecture) of every entry of weights/manifest.json."""
-    manifest = weights_dir / "manifest.json"
-    if not manifest.is_file():
-        return []
-    return [(weights_dir / entry["file"], ModelSettings.from_saved(entry["model"]))
-            for entry in json.loads(manifest.read_text())["weights"]]
-
-
-def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
-    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
-    return next((path for path, saved in _shipped(weights_dir) if saved == model), None)
-
-
-def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> str:
-    """Why no shipped weights fit `model`: the [model] keys in which those of its base differ from it."""
-    hints = []
-    for path, saved in _shipped(weights_dir):
-        if saved.base == model.base:
-            keys = differing_keys(dataclasses.asdict(saved), dataclasses.asdict(model))
-            hints.append(f"{path.name} has " + ", ".join(f"model.{k} = {getattr(saved, k)!r}" for k in keys))
-    return f" ({'; '.join(hints)})" if hints else ""
-
-
-def train_dir(cfg: Config, stage: str) -> Path:
-    """workdir/train/<stage>, or <stage>-oidn for a refiner: the two models train side by side."""
-    return cfg.workdir_path("train") / (stage if cfg.model.base == "noisy" else f"{stage}-{cfg.model.base}")
 
 
 def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart: bool = False,
@@ -129,27 +94,3 @@ def interrupted_note(cfg: Config, stage: str) -> str:
     step = load_checkpoint(path)["step"]
     return (f"interrupted: checkpoint {path} holds step {step} (steps after it are not saved); run the same "
             f"command to resume from it")
-
-
-def default_weights(cfg: Config) -> Path:
-    """What denoising and evaluation use when no weights are named: this config's fine-tuned run, else
-    its pretrained run, else the shipped weights for its [model]."""
-    for stage in ("finetune", "pretrain"):
-        candidate = train_dir(cfg, stage) / WEIGHTS_NAME
-        if candidate.is_file():
-            return candidate
-    shipped = shipped_weights(cfg.model)
-    if shipped is None:
-        raise StageError(f"no trained weights under {cfg.workdir_path('train')} and none shipped for this "
-                         "[model] config: run `admc-pipe train` or pass --weights")
-    return shipped
-
-
-def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int | None = None,
-               name: str | None = None, ensemble: int = 1, dark_pass: bool = False,
-               engine: str = "torch") -> FullImageDenoiser:
-    """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
-    averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
-    second, brighter pass if `dark_pass` (model/inference/exposure.py), its networks run by `engine` (model/inference/engines.py)."""
-    return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
-                         ensemble=ensemble, dark_pass=dark_pass, engine=engine)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from admc.common.layout import FP16_MAX
-from admc.pipeline.cache import Task, code_version
 from admc.pipeline.config import Config
+from admc.pipeline.engine.cache import Task, code_version
 from admc.pipeline.render import integrator, scenes
 from admc.pipeline.render.scenes import SceneSpec
 from admc.pipeline.render.variants import use_variant
