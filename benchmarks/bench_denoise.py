@@ -28,6 +28,7 @@ import argparse
 import copy
 import statistics
 from dataclasses import replace
+from importlib import resources
 
 import numpy as np
 import torch
@@ -38,16 +39,16 @@ from admc.model.inference.engines import default_precision, resolve_engine
 from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.backbones import build_generator
 from admc.model.precision import PRECISIONS, precision_name
-from admc.model.training.settings import paper_settings, small_settings
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
                                                 time_denoiser)
 
+SMALL = load_config().model  # configs/default.toml
 CONFIGS = {
-    "paper": paper_settings()[0].generator_config(),
-    "small": small_settings()[0].generator_config(),
-    "small+oidn": replace(small_settings()[0], base="oidn").generator_config(),
-    "small-unet": replace(small_settings()[0], backbone="unet").generator_config(),
+    "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model.generator_config(),
+    "small": SMALL.generator_config(),
+    "small+oidn": replace(SMALL, base="oidn").generator_config(),
+    "small-unet": replace(SMALL, backbone="unet").generator_config(),
 }
 
 

@@ -24,11 +24,12 @@ import argparse
 import statistics
 import time
 from dataclasses import replace
+from importlib import resources
 
 import torch
 
 from admc.model.training.branch import BranchTrainer
-from admc.model.training.settings import paper_settings, small_settings
+from admc.pipeline.config import load_config
 
 
 def make_batch(batch_size: int, patch: int) -> dict[str, torch.Tensor]:
@@ -47,6 +48,18 @@ def timed_step(trainer: BranchTrainer, batch: dict[str, torch.Tensor], device: t
     if not ok:
         raise RuntimeError(f"{trainer.settings.precision}: benchmark step was skipped as non-finite")
     return time.perf_counter() - start
+
+
+def small_settings():
+    """configs/default.toml's [model] and [train]: the small CPU model."""
+    cfg = load_config()
+    return cfg.model, cfg.train
+
+
+def paper_settings():
+    """configs/paper.toml's [model] and [train]: the paper's scale."""
+    cfg = load_config(resources.files("admc.configs").joinpath("paper.toml"))
+    return cfg.model, cfg.train
 
 
 def small_unet_settings():

@@ -52,6 +52,17 @@ def tiny_store_overrides(workdir, size: int, patch: int) -> list[str]:
             f"tile.patch_size={patch}", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"]
 
 
+def preset(name: str):
+    """The [model] and [train] sections of a shipped config (configs/NAME.toml) as the CLI loads it:
+    the presets exist only as TOML."""
+    from importlib import resources
+
+    from admc.pipeline.config import load_config
+
+    cfg = load_config(None if name == "default" else resources.files("admc.configs").joinpath(f"{name}.toml"))
+    return cfg.model, cfg.train
+
+
 def build_tiny_store(workdir, size: int, patch: int):
     """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data."""
     from admc.pipeline.config import load_config

@@ -14,13 +14,12 @@ from admc.model.inference.oidn_base import oidn_bases
 from admc.model.nets.backbones import build_generator
 from admc.model.nets.generator import GeneratorConfig
 from admc.model.nets.settings import ModelSettings
-from admc.model.training.settings import small_settings
 from admc.model.training.trainer import train
 from admc.pipeline.config import ConfigError, load_config
 from admc.pipeline.stages.dataset import build_dataset
 from admc.stores import exr, patches
 from admc.stores.patches import PatchReader, PatchStoreError
-from conftest import tiny_store_overrides
+from conftest import preset, tiny_store_overrides
 
 TINY = dict(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_skip=True)
 
@@ -101,7 +100,7 @@ def test_a_store_without_bases_is_refused_naming_the_scene_and_the_key(tmp_path,
 
 def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_with_bases, tmp_path):
     cfg, store = store_with_bases
-    model, settings = small_settings()
+    model, settings = preset("default")
     model = dataclasses.replace(model, **TINY, critic_channels=4, base="oidn")
     settings = dataclasses.replace(settings, steps=4, l1_warmup_steps=2, critic_only_steps=1, val_every=2,
                                    val_patches=2, checkpoint_every=2, log_every=1, head_tail_start_step=0)

@@ -10,12 +10,12 @@ import torch
 import zarr
 from zarr.storage import LocalStore
 
-from conftest import build_tiny_store
+from conftest import build_tiny_store, preset
 from admc.model.nets.generator import MODES
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows
-from admc.model.training.settings import TrainSettings, paper_settings, small_settings
+from admc.model.training.settings import TrainSettings
 from admc.model.training.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
                                      read_networks, save_checkpoint)
@@ -370,7 +370,7 @@ def test_exported_weights_are_fp16_and_load_back(tmp_path):
 
 
 def test_settings_check_names_the_field():
-    for settings in (*paper_settings(), *small_settings(), TINY, SETTINGS):
+    for settings in (*preset("paper"), *preset("default"), TINY, SETTINGS):
         settings.check()
     with pytest.raises(ValueError, match="^mode: 'film' is not one of"):
         dataclasses.replace(TINY, mode="film").check()

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import build_tiny_store, tiny_store_overrides
+from conftest import build_tiny_store, preset, tiny_store_overrides
 from admc.stores import patches
 
 ADMC = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "admc-pipe")
@@ -71,13 +71,12 @@ def test_train_tiles_a_damaged_scene_again_before_training_and_says_so(tiny):
     assert patches.damaged_arrays(store, "train", scene) == []
 
 def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_path):
-    from admc.model.training.settings import small_settings
     from admc.model.training.trainer import train
     from dataclasses import replace
 
     store, _, scene = tiny
     flip_bytes(shard(store, "train", scene, "features"), -10)  # the shard index: zarr's crc32c refuses it
-    model, settings = small_settings()
+    model, settings = preset("default")
     settings = replace(settings, steps=2, val_every=0, branches=("diffuse",), l1_warmup_steps=2)
     with pytest.raises(patches.PatchStoreError) as caught:
         train(store, tmp_path / "run", settings, replace(model, channels=4, blocks=1), progress=False)

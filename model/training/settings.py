@@ -2,17 +2,16 @@
 
 Fields use only int/float/str/bool/tuple so the generic TOML loader can type-check them; `check()`
 raises ValueError("<field>: <problem>"). The dataclass defaults are the paper's scale (values from
-the authors' code where code and paper text disagree, see paper_settings); small_settings() is a CPU
-default that trains a few hundred steps in minutes.
+the authors' code where code and paper text disagree); the presets a run starts from are
+configs/*.toml (default.toml: a CPU model that trains in minutes; paper.toml: the paper's scale).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from admc.common.layout import BRANCHES
 
 from ..checks import non_negative_ints, positive_ints, require
-from ..nets.settings import ModelSettings
 from .selection import SELECT_METRICS
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -105,25 +104,3 @@ class TrainSettings:
         if step < self.l1_warmup_steps + self.critic_only_steps:
             return "critic"
         return "adversarial"
-
-
-def paper_settings() -> tuple[ModelSettings, TrainSettings]:
-    """The authors' scale: 1.53 M-parameter generators, VGG-128 critics, 600k steps of batch 8.
-
-    Learning rates are the authors' shipped configs (diffuse 1e-6, specular 1e-4, critic 1e-4); the
-    paper text swaps the two generator rates. The code has no L1 warm-up and no critic pretraining
-    (both 0 here); admc adds them as options. admc's critic uses layer norm (the code: BatchNorm).
-    """
-    return ModelSettings(), TrainSettings()
-
-
-def small_settings() -> tuple[ModelSettings, TrainSettings]:
-    """A CPU default: tiny networks, 300 steps of batch 2 on 128x128 patches, ~0.6 s per step for both
-    branches on one busy core here (~3 min); a demo of the whole pipeline, not a good denoiser."""
-    model = ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32, critic_channels=8,
-                          input_skip=True)
-    train = replace(TrainSettings(), steps=300, batch_size=2, l1_warmup_steps=100, critic_only_steps=50,
-                    lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=50,
-                    lr_milestones=(200,), val_every=100, val_patches=64, checkpoint_every=100,
-                    log_every=10, num_workers=0, threads=0)
-    return model, train
