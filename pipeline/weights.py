@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from importlib import resources
 from pathlib import Path
 
-import admc
 from admc.common.diff import differing_keys
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
 from admc.model.nets.settings import ModelSettings
@@ -17,7 +17,8 @@ from admc.model.training.trainer import WEIGHTS_NAME
 from admc.pipeline.config import Config
 from admc.pipeline.stages.corpus import StageError
 
-WEIGHTS_DIR = Path(admc.__file__).resolve().parents[1] / "weights"
+WEIGHTS_DIR = Path(resources.files("admc.weights"))
+"""The shipped weights, package data of admc.weights: found from an editable or a plain install."""
 
 
 def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
