@@ -12,7 +12,6 @@ Prints relMSE and 1-SSIM over the whole image and
 relMSE over the pixels the change touches.
 """
 import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -23,8 +22,8 @@ from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.render.integrator import render_buffers
 from admc.pipeline.render.variants import use_variant
+from admc.pipeline.weights import WEIGHTS_DIR
 
-WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 
 
 def environment_map(width: int = 512, height: int = 256) -> np.ndarray:
@@ -85,7 +84,7 @@ def main() -> None:
     reference = render_buffers(scene, args.reference_spp, seed=1000)
     ref = reference["diffuse"] + reference["specular"]
     oidn = OidnDenoiser(quality=table1.oidn_quality)
-    learned = {name: load_denoiser(WEIGHTS / f"admc-small-{file}.pt", ensemble=table1.ensemble,
+    learned = {name: load_denoiser(WEIGHTS_DIR / f"admc-small-{file}.pt", ensemble=table1.ensemble,
                                    dark_pass=table1.dark_pass)
                for name, file in (("admc", "pretrained"), ("admc+oidn", "refiner"))}
     print(f"{args.size}x{args.size}, reference {args.reference_spp} spp; relMSE (whole image, touched pixels), 1-SSIM")

@@ -4,7 +4,6 @@ mirror sphere under an environment map, the integrator's features there and the 
 Before, every sample of such a pixel escaped without reaching a non-delta vertex, so the pixel had coverage 0,
 no normal and no depth, and inference passed it through as if it showed the environment directly.
 """
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,9 +12,9 @@ from admc.common.metrics import relmse
 from admc.model.inference.denoiser import load_denoiser, sanitize_layers
 from admc.model.inference.oidn_base import oidn_bases
 from admc.pipeline.render.integrator import render_buffers
+from admc.pipeline.weights import WEIGHTS_DIR
 
 SIZE = 32
-WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 MIRROR = 0.8  # the sphere's reflectance: a perfect mirror ("material": "none") scaled by it
 
 
@@ -95,7 +94,7 @@ def test_a_uniform_sky_in_a_mirror_has_nothing_to_denoise_and_stays_environment(
 def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror, inference_dtype):
     layers, _ = mirror
     noisy = layers["diffuse"] + layers["specular"]
-    out = load_denoiser(WEIGHTS / "admc-small-pretrained.pt", dtype=inference_dtype)(layers).image
+    out = load_denoiser(WEIGHTS_DIR / "admc-small-pretrained.pt", dtype=inference_dtype)(layers).image
     sphere, sky = _on_sphere_and_off()
     changed = np.abs(out - noisy) > 1e-3 * noisy
     assert changed[sphere].mean() > 0.8
@@ -105,7 +104,7 @@ def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror, inferenc
 def test_the_refiner_refines_oidn_on_the_mirror_and_keeps_the_environment_exact(mirror, inference_dtype):
     layers, reference = mirror
     noisy = layers["diffuse"] + layers["specular"]
-    out = load_denoiser(WEIGHTS / "admc-small-refiner.pt", dtype=inference_dtype)(layers).image
+    out = load_denoiser(WEIGHTS_DIR / "admc-small-refiner.pt", dtype=inference_dtype)(layers).image
     clean, _ = sanitize_layers(layers)
     bases = oidn_bases({name: clean[name] for name in ("diffuse", "specular", "albedo", "normal")})
     base = bases["diffuse"] + bases["specular"]
