@@ -71,13 +71,13 @@ def _screen(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     x, z = around_target(rng, aim)
     half = rng.uniform(0.3, 0.6) * aim.radius
     centre = np.array([x, base_height(aim, half) + half * rng.uniform(1.0, 2.0), z])
-    picture = np.asarray(random_pattern(rng).pixels) / 0.85
+    picture = np.asarray(random_pattern(rng).pixels) / 0.85  # radiance above 1: "raw" keeps Mitsuba from warning
     radiance = irradiance(rng, aim) / (np.pi * (2 * half) ** 2) * np.linalg.norm(centre - aim.target) ** 2 * 3.0
     to_target, to_eye = aim.target - centre, np.asarray(aim.eye) - centre
     facing = to_target / np.linalg.norm(to_target) + to_eye / np.linalg.norm(to_eye)  # lights the target, seen by the camera
     scene["screen"] = {"type": "rectangle", "to_world": planar(centre, facing, UP, half, half * rng.uniform(0.6, 1.0)),
                        "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": Image(picture * radiance),
-                                                                "filter_type": "nearest"}}}
+                                                                "filter_type": "nearest", "raw": True}}}
 
 
 def _brushed(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
