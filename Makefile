@@ -30,10 +30,8 @@ eval: setup                 ## Table 1, error vs time and the HTML page for the 
 ood: setup                  ## Table 1 on the out-of-family set (family 'ood', held out of training; docs/corpus.md)
 	$(ADMC) eval --set eval.split=ood --set eval.out_dir=eval-ood $(CFGARG) $(ARGS)
 
-ONNX_TESTS := tests/test_engines.py tests/test_export.py
-test: setup                 ## the test suite (real renders, tiny sizes); the ONNX engines' tests in a process of their own
-	$(PY) -m pytest -q --durations=15 $(foreach t,$(ONNX_TESTS),--ignore=$(t)) $(ARGS)
-	$(PY) -m pytest -q $(ONNX_TESTS) $(ARGS)
+test: setup                 ## the test suite (real renders, tiny sizes), each file in a pytest process of its own
+	$(PY) tests/run_per_file.py $(ARGS)
 
 bench: setup                ## print measured speed and size figures (each script: --help)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
