@@ -219,3 +219,16 @@ def test_tiled_scenes_match_the_documented_layout(built):
         assert group.attrs["n_crops"] == group.attrs["n_rows"] == n == group["origin"].shape[0]
         np.testing.assert_array_equal(group["crop"][:], np.arange(n))
         assert group["ref_diffuse"].shape[0] == n
+
+
+def test_scenes_with_constructs_tile_into_the_store(tmp_path, variant):
+    """A broadened corpus (configs/broad.toml) names a scene by its constructs, "room-1000000+grate": the
+    store takes that name (it refused the "+" once, so no construct scene ever reached training)."""
+    cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
+                             "render.spp=[2]", "render.reference_spp=4", "corpus.families=['room']",
+                             "corpus.n_scenes=2", "corpus.construct_chance=1.0", "tile.patch_size=32",
+                             "tile.crops_per_scene=1", "tile.split=[1.0, 0.0, 0.0]"])
+    result = build_dataset(cfg, progress=False)
+    names = [s.scene_id for s in result.scenes]
+    assert all("+" in name for name in names), names
+    assert patches.list_scenes(result.store, "train") == sorted(names)

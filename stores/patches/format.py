@@ -28,7 +28,7 @@ BASE_IMAGES = {"base_diffuse": 3, "base_specular": 3}
 SPECULAR_ARRAYS = ("noisy_specular", "ref_specular")
 REQUIRED_ROOT_ATTRS = ("transform", "patch_size")
 REQUIRED_SCENE_ATTRS = ("scene_hash", "image_size", "sanitization")
-_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")  # "+" joins a scene's constructs (room-1000001+grate)
 
 LAYOUT = {
     "rows": "one row per (image crop, spp): noisy_*, features, spp, crop",
@@ -75,7 +75,7 @@ def _jsonable(obj: Any, what: str) -> Any:
 
 def _check_name(value: str, what: str) -> None:
     if not isinstance(value, str) or not _NAME.fullmatch(value):
-        raise PatchStoreError(f"{what} {value!r}: use letters, digits, '.', '_', '-', starting alphanumeric")
+        raise PatchStoreError(f"{what} {value!r}: use letters, digits, '.', '_', '-', '+', starting alphanumeric")
 
 
 def _check_split(split: str) -> None:
