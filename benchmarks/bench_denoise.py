@@ -66,6 +66,8 @@ def synthetic_layers(height: int, width: int) -> dict[str, np.ndarray]:
         "normal": normal / np.linalg.norm(normal, axis=-1, keepdims=True),
         "depth": rng.uniform(1.0, 20.0, size=(height, width, 1)).astype(np.float32),
         "coverage": np.ones((height, width, 1), dtype=np.float32),
+        "diffuse_var": rng.gamma(0.5, 0.5, size=(height, width, 3)).astype(np.float32),  # for model.noise_input
+        "specular_var": rng.gamma(0.3, 0.3, size=(height, width, 3)).astype(np.float32),
     }
 
 

@@ -237,6 +237,13 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                 model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
                                    engine=engine or cfg.eval.engine)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
+            missing = model.missing_layers(source.layers)
+            if missing:
+                raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)}, which the weights "
+                                        f"{model.source} read (model.noise_input: the variance of each pixel's "
+                                        "mean, as `admc-pipe render` writes in its multi-layer EXRs); without "
+                                        "it, use weights without that input (--set model.noise_input=false "
+                                        "picks the shipped ones)")
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError, OSError) as exc:  # this input's or its folder's fault: the others
             if len(inputs) == 1 or _input_failure(exc) is None:  # still get denoised

@@ -184,3 +184,56 @@ def to_fp16(x: np.ndarray) -> tuple[np.ndarray, int]:
     if n_clamped:
         x = np.clip(x, -FP16_MAX, FP16_MAX)
     return x.astype(np.float16), n_clamped
+
+
+# model.noise_input: each branch's per-pixel noise level, from the renders' variance buffers. Not part of
+# transform_spec (weights without the input never read it; a store keeps it only with tile.noise_maps).
+
+NOISE_VARIANCE_MAX = float(RADIANCE_MAX) ** 2
+"""A variance buffer's +Inf and values beyond this are set to it (the variance of a clamped radiance)."""
+
+NOISE_STD_UNIT = 1e-3
+"""The noise map's unit: a standard deviation of 0.001 in the log domain, about what a 64-spp studio
+render's flat regions carry. The map is log1p(std / unit) / log1p(1 / unit)."""
+
+
+def sanitize_variance(variance: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """A variance buffer with NaN and negative values set to 0 and +Inf (or beyond) to NOISE_VARIANCE_MAX;
+    the counts as sanitize() gives them. Not a transform_spec rule: only noise_forward reads variances."""
+    x = np.asarray(variance, dtype=np.float32)
+    nan, posinf, neginf = np.isnan(x), np.isposinf(x), np.isneginf(x)
+    finite = np.isfinite(x)
+    below, above = finite & (x < 0), finite & (x > NOISE_VARIANCE_MAX)
+    clean = np.clip(np.nan_to_num(x, nan=0.0, posinf=NOISE_VARIANCE_MAX, neginf=0.0), 0.0, NOISE_VARIANCE_MAX)
+    counts = {"nan": int(nan.sum()), "posinf": int(posinf.sum()), "neginf": int(neginf.sum()),
+              "below_min": int(below.sum()), "above_max": int(above.sum())}
+    return clean.astype(np.float32, copy=False), counts
+
+
+def noise_forward(variance: np.ndarray, radiance: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
+    """One branch's per-pixel noise level (H, W, 1) in its own log domain, for model.noise_input.
+
+    `variance` is the render's variance of the pixel mean of `radiance` (both linear, (H, W, 3));
+    `scale` is what the log domain divides by: albedo + eps for diffuse, 1 for specular. By the delta
+    method, d log1p(x / s) = dx / (x + s), so the standard deviation the network's input carries is
+    std = sqrt(variance) / (radiance + s), averaged over RGB. The map is logarithmic in it,
+    log1p(std / NOISE_STD_UNIT) / log1p(1 / NOISE_STD_UNIT): 0 where converged, 1 at std 1, and a step
+    of ~0.1 per halving in between, so 4 and 64 spp differ by a signal the size of the other features'
+    (a linear map of std, mostly below 0.05, gives a weight that starts at 0 almost nothing to learn
+    from). NaN and negative variances count as 0.
+    """
+    var = np.nan_to_num(np.asarray(variance, dtype=np.float64), nan=0.0, posinf=NOISE_VARIANCE_MAX, neginf=0.0)
+    x = np.nan_to_num(np.asarray(radiance, dtype=np.float64), nan=0.0, posinf=RADIANCE_MAX, neginf=0.0)
+    std = np.sqrt(np.clip(var, 0.0, NOISE_VARIANCE_MAX)) / (np.clip(x, 0.0, RADIANCE_MAX) + scale)
+    level = np.log1p(std.mean(axis=-1, keepdims=True) / NOISE_STD_UNIT) / np.log1p(1.0 / NOISE_STD_UNIT)
+    return level.astype(np.float32)
+
+
+def diffuse_noise(variance: np.ndarray, diffuse: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """noise_forward for the diffuse branch (its log domain divides by albedo + eps)."""
+    return noise_forward(variance, diffuse, _demodulation_albedo(albedo))
+
+
+def specular_noise(variance: np.ndarray, specular: np.ndarray) -> np.ndarray:
+    """noise_forward for the specular branch (log1p: a scale of 1)."""
+    return noise_forward(variance, specular, 1.0)

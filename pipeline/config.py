@@ -104,6 +104,7 @@ class TileConfig:
     seed: int
     val_set: str
     oidn_base: bool
+    noise_maps: bool
 
     def check(self) -> None:
         # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built

@@ -31,8 +31,15 @@ def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
 
 
 def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
-    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json."""
-    return next((path for path, saved in _shipped(weights_dir) if saved == model), None)
+    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json; for a
+    model.noise_input without shipped weights of its own, those of the same architecture without it
+    (fine-tuning then adds the input with zero weights, which computes what they did: resume.load_init)."""
+    shipped = _shipped(weights_dir)
+    exact = next((path for path, saved in shipped if saved == model), None)
+    if exact is None and model.noise_input:
+        plain = dataclasses.replace(model, noise_input=False)
+        return next((path for path, saved in shipped if saved == plain), None)
+    return exact
 
 
 def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> str:
@@ -46,8 +53,10 @@ def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> s
 
 
 def train_dir(cfg: Config, stage: str) -> Path:
-    """workdir/train/<stage>, or <stage>-oidn for a refiner: the two models train side by side."""
-    return cfg.workdir_path("train") / (stage if cfg.model.base == "noisy" else f"{stage}-{cfg.model.base}")
+    """workdir/train/<stage>, or <stage>-oidn for a refiner, then -noise for model.noise_input: the models
+    train side by side."""
+    name = stage if cfg.model.base == "noisy" else f"{stage}-{cfg.model.base}"
+    return cfg.workdir_path("train") / (f"{name}-noise" if cfg.model.noise_input else name)
 
 
 def default_weights(cfg: Config) -> Path:

@@ -63,10 +63,11 @@ def preset(name: str):
     return cfg.model, cfg.train
 
 
-def build_tiny_store(workdir, size: int, patch: int):
-    """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data."""
+def build_tiny_store(workdir, size: int, patch: int, extra: list[str] = ()):
+    """A real patch store from a 4-scene corpus rendered at size x size (seconds): the tests' data;
+    `extra` adds `--set` values (e.g. tile.noise_maps=true)."""
     from admc.pipeline.config import load_config
     from admc.pipeline.stages.dataset import build_dataset
 
-    cfg = load_config(None, tiny_store_overrides(workdir, size, patch))
+    cfg = load_config(None, [*tiny_store_overrides(workdir, size, patch), *extra])
     return build_dataset(cfg, progress=False).store

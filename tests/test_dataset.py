@@ -232,3 +232,61 @@ def test_scenes_with_constructs_tile_into_the_store(tmp_path, variant):
     names = [s.scene_id for s in result.scenes]
     assert all("+" in name for name in names), names
     assert patches.list_scenes(result.store, "train") == sorted(names)
+
+
+def test_noise_maps_are_tiled_when_the_config_asks_and_kept_across_runs_without_them(tmp_path):
+    """tile.noise_maps (or model.noise_input) stores each branch's noise map per row: the render's variance
+    through transforms.*_noise, cropped like every row. A run without them into the same store re-tiles
+    the scenes without them; the next run that asks re-tiles them back from the cached renders."""
+    from admc.pipeline.render.variants import use_variant
+    use_variant("auto")
+    plain = tiny(tmp_path, 2)
+    noisy = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[64, 64]",
+                               "render.spp=[2, 4]", "render.reference_spp=16", "corpus.families=['room', 'tabletop']",
+                               "corpus.n_scenes=2", "tile.patch_size=32", "tile.crops_per_scene=3",
+                               "tile.split=[0.6, 0.2, 0.2]", "model.noise_input=true"])
+    result = build_dataset(noisy, progress=False)
+    for summary in result.tiles:
+        assert summary["has_noise"] and patches.has_noise_maps(result.store, summary["split"], summary["scene_id"])
+        for branch in ("diffuse", "specular"):
+            plain_rows = patches.PatchReader(result.store, summary["split"], branch=branch)
+            with_noise = patches.PatchReader(result.store, summary["split"], branch=branch, noise=True)
+            rows = [i for i in range(len(plain_rows)) if plain_rows.locate(i)[0] == summary["scene_id"]]
+            for i in rows:
+                row, features = plain_rows[i], with_noise[i]["features"]
+                y, x = _origin(result.store, f"{summary['split']}/{summary['scene_id']}", plain_rows.locate(i)[1])
+                layers = exr.read_exr(result.renders_dir / summary["scene_id"] / f"spp{row['spp']:04d}.exr")
+                noise = (tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], layers["albedo"])
+                         if branch == "diffuse" else tf.specular_noise(layers["specular_var"], layers["specular"]))
+                np.testing.assert_array_equal(features[:-1], row["features"])
+                np.testing.assert_array_equal(features[-1:], noise[y:y + 32, x:x + 32].transpose(2, 0, 1)
+                                              .astype(np.float16).astype(np.float32))
+    assert len(result.tiles) == 2 and any(len(patches.PatchReader(result.store, s["split"], noise=True))
+                                          for s in result.tiles)
+
+    again = build_dataset(plain, progress=False)  # renders cached; the tiles without noise maps run
+    assert again.executed == 2
+    assert not any(patches.has_noise_maps(again.store, s["split"], s["scene_id"]) for s in again.tiles)
+    back = build_dataset(noisy, progress=False)  # its tile tasks are cached, but the scenes lost their maps
+    assert back.executed == 2
+    assert all(patches.has_noise_maps(back.store, s["split"], s["scene_id"]) for s in back.tiles)
+    assert build_dataset(noisy, progress=False).executed == 0
+
+
+def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
+    rng = np.random.default_rng(2)
+    noisy = _layers(rng, 32, True, poison=True)
+    noisy["diffuse_var"][7, 7] = [np.nan, np.inf, -1.0]
+    noisy["specular_var"][8, 8] = [np.inf, 1e30, -np.inf]
+    inputs = {"reference": _fake_render(tmp_path / "ref", _layers(rng, 32, True)),
+              "spp0004": _fake_render(tmp_path / "n4", noisy)}
+    store = _store(tmp_path)
+    out = tile.tile_scene(tmp_path, inputs, store=str(store), split="train", scene_id="poisoned",
+                          scene_hash="ab" * 32, patch_size=16, crops_per_scene=4, candidates_per_crop=4, seed=0,
+                          noise_maps=True)
+    assert out["has_noise"]
+    import zarr
+    group = zarr.open_group(str(store / "train" / "poisoned"), mode="r")
+    for name in ("noise_diffuse", "noise_specular"):
+        values = group[name][...].astype(np.float32)
+        assert values.shape == (4, 1, 16, 16) and np.isfinite(values).all() and (values >= 0).all()

@@ -348,3 +348,111 @@ def test_bfloat16_tiles_equal_the_untiled_image_up_to_one_bf16_rounding():
     assert untiled.abs().max().item() > 1.0
     assert (tiled - untiled).abs().max().item() <= bound
     assert (short - untiled).abs().max().item() > bound  # measured 2.9x the bound: the check can fail
+
+
+class FeatureEcho(nn.Module):
+    """A generator stand-in that records the features it is called with and passes its input through."""
+
+    def __init__(self, noise_input: bool):
+        super().__init__()
+        self.config = GeneratorConfig(noise_input=noise_input)
+        self.seen = []
+
+    def forward(self, noisy, features):
+        self.seen.append(features.clone())
+        return noisy.clone()
+
+
+def with_variance(layers, seed=3):
+    rng = np.random.default_rng(seed)
+    height, width = layers["diffuse"].shape[:2]
+    return {**layers, "diffuse_var": rng.random((height, width, 3), dtype=np.float32) * 0.1,
+            "specular_var": rng.random((height, width, 3), dtype=np.float32) * 0.1}
+
+
+@pytest.mark.parametrize("normalize_exposure", [False, True])
+def test_noise_input_weights_read_each_branchs_variance_as_its_noise_map(normalize_exposure):
+    from admc.model.transforms import diffuse_noise, specular_noise
+
+    layers = with_variance(render_layers(12, 10))
+    if normalize_exposure:  # a dim image: the networks see the radiance times a gain, its variance times gain^2
+        layers = {k: v * (1e-3 if k in ("diffuse", "specular") else 1e-6 if k.endswith("_var") else 1)
+                  for k, v in layers.items()}
+    diffuse, specular = FeatureEcho(noise_input=True), FeatureEcho(noise_input=True)
+    denoiser = FullImageDenoiser(diffuse, specular, overlap=0, normalize_exposure=normalize_exposure)
+    gain = np.float32(denoiser(layers).exposure_gain)
+    assert (gain > 1) == normalize_exposure
+    (d,), (s,) = diffuse.seen, specular.seen
+    assert d.shape == s.shape == (1, 8, 12, 10)
+    torch.testing.assert_close(d[0, :7], s[0, :7])
+    want_d = diffuse_noise(layers["diffuse_var"] * gain**2, layers["diffuse"] * gain, layers["albedo"])
+    want_s = specular_noise(layers["specular_var"] * gain**2, layers["specular"] * gain)
+    np.testing.assert_array_equal(d[0, 7].numpy(), want_d[..., 0])
+    np.testing.assert_array_equal(s[0, 7].numpy(), want_s[..., 0])
+
+    plain = FeatureEcho(noise_input=False)
+    FullImageDenoiser(plain, None, overlap=0)(layers)
+    assert plain.seen[0].shape[1] == 7  # weights without the noise input never see it
+
+
+def test_noise_input_weights_name_the_variance_layers_an_input_lacks():
+    denoiser = FullImageDenoiser(FeatureEcho(True), FeatureEcho(True), overlap=0, source="w.pt")
+    layers = render_layers(8, 8)
+    assert denoiser.missing_layers(layers) == ["diffuse_var", "specular_var"]
+    assert denoiser.missing_layers({k: v for k, v in layers.items() if k != "specular"}) == ["diffuse_var"]
+    with pytest.raises(KeyError, match="lacks layer.s. diffuse_var, specular_var, which w.pt read"):
+        denoiser(layers)
+    layers["diffuse_var"] = np.full((8, 8, 3), np.nan, np.float32)
+    layers["specular_var"] = np.zeros((8, 8, 3), np.float32)
+    result = denoiser(layers)  # a NaN variance is repaired like any layer, and said
+    assert result.sanitized["diffuse_var"] == {"nan": 8 * 8 * 3} and np.isfinite(result.image).all()
+    with pytest.raises(ValueError, match="'specular_var' has shape"):
+        denoiser(dict(layers, specular_var=layers["specular_var"][:4]))
+
+
+def test_weights_without_the_noise_input_ignore_variance_layers_bit_for_bit():
+    """The default (model.noise_input = false) computes what it did before the input existed, whatever
+    variance layers (broken ones included) the input carries, and reports no repair of them."""
+    layers = render_layers(24, 20)
+    broken = {**with_variance(layers), "diffuse_var": np.full((3, 3, 3), np.nan, np.float32)}
+    denoiser = FullImageDenoiser(strong_generator(0), strong_generator(1), tile=16, dark_pass=True)
+    a, b = denoiser(layers), denoiser(broken)
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.sanitized == b.sanitized == {}
+
+
+def noise_generator(seed: int, scale: float = 1.0, input_skip: bool = False) -> Generator:
+    """strong_generator with the noise input: its encoder's weights on the noise channel are as large as the others'."""
+    torch.manual_seed(seed)
+    g = Generator(GeneratorConfig(**{**TINY.__dict__, "noise_input": True, "input_skip": input_skip})).eval()
+    scaled_kaiming_(g, scale)
+    with torch.no_grad():
+        for m in g.modules():
+            if isinstance(m, nn.Conv2d):
+                m.bias.uniform_(0.0, 0.1 * scale)
+    return g
+
+
+def test_noise_input_weights_tile_and_run_the_dark_pass_and_ensemble_like_the_whole_image(inference_dtype):
+    layers = with_variance(render_layers(40, 36))
+    for name in ("diffuse", "specular"):  # a dark band: the dark pass runs there, at 64x the exposure
+        layers[name][:, :12] *= 1e-4
+        layers[f"{name}_var"][:, :12] *= 1e-8
+    # 0.7x Kaiming keeps the log outputs O(1), where log_tolerance's float32 bound holds (as on the 70x90 test)
+    strong = noise_generator(0, 0.7), noise_generator(1, 0.7)
+    near_identity = noise_generator(0, 0.1, input_skip=True), noise_generator(1, 0.1, input_skip=True)
+    for generators, options in ((strong, {}), (strong, {"ensemble": 4}), (near_identity, {"dark_pass": True})):
+        whole = FullImageDenoiser(*generators, tile=64, dtype=inference_dtype, **options)(layers)
+        tiled = FullImageDenoiser(*generators, tile=16, dtype=inference_dtype, **options)(layers)
+        assert tiled.tiles > 1 == whole.tiles
+        albedo = layers["albedo"]
+        for a, b, branch in ((diffuse_forward(tiled.diffuse, albedo), diffuse_forward(whole.diffuse, albedo),
+                              "diffuse"), (specular_forward(tiled.specular), specular_forward(whole.specular),
+                                           "specular")):
+            assert b.max() < LOG_MAX[branch] - 0.1  # nothing clamped
+            assert np.abs(a - b).max() <= log_tolerance(inference_dtype, float(np.abs(b).max()))
+        assert whole.dark_share > 0 if options.get("dark_pass") else whole.dark_share == 0
+    # the map matters: other variances, another output
+    quieter = {**layers, "diffuse_var": layers["diffuse_var"] * 1e-4}
+    plain = FullImageDenoiser(*strong, tile=64, dtype=inference_dtype)
+    assert np.abs(plain(quieter).diffuse - plain(layers).diffuse).max() > 0

@@ -165,3 +165,82 @@ def test_input_skip_starts_at_the_identity():
     torch.nn.init.zeros_(plain.tail[2].bias)
     with torch.no_grad():
         assert float(plain(noisy, features).abs().max()) == 0.0  # the authors' network starts at zero
+
+
+# Widening weights into model.noise_input. In float64 the widened generator must compute what the saved one
+# did: its first conv adds one product w * noise with w = 0 exactly, so the only possible difference is the
+# order oneDNN sums the other products in (it may block 8 input channels differently from 7). Each output
+# is then a sum over at most ~10 layers of <= 9 * 64 products of magnitude <= ~10: a reordering moves it by
+# at most that count times eps64 (2.2e-16) times the sum, < 1e-11. (float32 saw a 2.4e-7 reordering.)
+WIDEN_ATOL = 1e-11
+
+
+@pytest.mark.parametrize("mode, backbone, base", [("cfm", "residual", "noisy"), ("concat", "residual", "noisy"),
+                                                  ("cfm", "unet", "noisy"), ("shift", "residual", "oidn")])
+def test_weights_without_the_noise_input_widen_to_the_same_function(mode, backbone, base):
+    """Fine-tuning older weights into model.noise_input: zero weights on the new channel, and the
+    widened generator computes what the saved one did, whatever the noise map holds."""
+    import dataclasses
+
+    from admc.model.nets.backbones import build_generator
+    from admc.model.nets.settings import ModelSettings
+    from admc.model.training.resume import with_noise_input
+
+    model = ModelSettings(**TINY, mode=mode, backbone=backbone, levels=2, base=base, input_skip=True)
+    torch.manual_seed(0)
+    old = build_generator(model.generator_config())
+    for p in old.parameters():  # every weight nonzero, the refiner's zero-started tail too
+        torch.nn.init.normal_(p, std=0.1)
+    wide_model = dataclasses.replace(model, noise_input=True)
+    wide = build_generator(wide_model.generator_config())
+    wide.load_state_dict(with_noise_input(old.state_dict(), wide_model))
+    old, wide = old.double(), wide.double()
+    noisy, feats = torch.rand(2, 3, 16, 16, dtype=torch.float64), torch.rand(2, 7, 16, 16, dtype=torch.float64)
+    base_image = torch.rand(2, 3, 16, 16, dtype=torch.float64) if base == "oidn" else None
+    with torch.no_grad():
+        want = old(noisy, feats, base_image)
+        got = wide(noisy, torch.cat([feats, torch.rand(2, 1, 16, 16, dtype=torch.float64)], dim=1), base_image)
+    torch.testing.assert_close(got, want, rtol=0, atol=WIDEN_ATOL)
+    with pytest.raises(ValueError, match=r"features must be \(2, 8, 16, 16\)"):
+        wide(noisy, feats, base_image)
+
+
+@pytest.mark.parametrize("name", ["admc-small-pretrained.pt", "admc-small-refiner.pt", "admc-small-unet.pt"])
+def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_them(name):
+    """What `admc-pipe train --stage finetune --set model.noise_input=true` starts from (resume.load_init):
+    the shipped tensors bit for bit, zeros on the noise channel, and the same outputs at step 0."""
+    import dataclasses
+
+    from admc.model.nets.backbones import build_generator
+    from admc.model.nets.settings import ModelSettings
+    from admc.model.training.resume import load_init
+    from admc.pipeline.weights import WEIGHTS_DIR, shipped_weights
+    from admc.stores.checkpoints import read_networks
+
+    path = WEIGHTS_DIR / name
+    shipped, saved, _ = read_networks(path)
+    plain = ModelSettings.from_saved(saved)
+    model = dataclasses.replace(plain, noise_input=True)
+    assert shipped_weights(model) == shipped_weights(plain)  # a noise model without its own: these
+    nets, _, source = load_init(path, model)
+    assert source == f"{path} (the noise input added, its weights starting at 0)"
+    torch.manual_seed(1)
+    for branch, state in shipped.items():
+        old, new = state["generator"], nets[branch]["generator"]
+        assert set(old) == set(new)
+        for key, tensor in old.items():
+            if key == "encoder.layers.0.weight":  # features (7), [noise], [a refiner's noisy (3)]
+                assert torch.equal(new[key][:, :7], tensor[:, :7]) and torch.equal(new[key][:, 8:], tensor[:, 7:])
+                assert torch.equal(new[key][:, 7], torch.zeros_like(tensor[:, 0]))
+            else:
+                assert torch.equal(new[key], tensor), key
+        before, after = build_generator(plain.generator_config()), build_generator(model.generator_config())
+        before.load_state_dict({k: v.double() for k, v in old.items()})
+        after.load_state_dict({k: v.double() for k, v in new.items()})
+        before, after = before.double().eval(), after.double().eval()
+        noisy, feats = torch.rand(1, 3, 40, 40, dtype=torch.float64), torch.rand(1, 7, 40, 40, dtype=torch.float64)
+        base = noisy.flip(-1) if plain.base == "oidn" else None
+        with torch.no_grad():
+            want = before(noisy, feats, base)
+            got = after(noisy, torch.cat([feats, torch.rand(1, 1, 40, 40, dtype=torch.float64)], dim=1), base)
+        torch.testing.assert_close(got, want, rtol=0, atol=WIDEN_ATOL)

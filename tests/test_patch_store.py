@@ -308,3 +308,40 @@ def test_a_store_of_an_older_format_is_refused_with_what_to_do(tmp_path):
         with pytest.raises(P.PatchStoreError, match=r"format_version 1, this code reads 2; written by an older "
                                                     r"admc: move it away .* run `admc-pipe dataset`"):
             opening()
+
+
+def test_noise_maps_come_per_branch_and_join_the_features_only_when_asked(store):
+    with_noise = synthetic_scene(5)
+    n = len(with_noise["spp"])
+    rng = np.random.default_rng(5)
+    for branch in ("diffuse", "specular"):
+        with_noise[f"noise_{branch}"] = rng.uniform(0, 1, (n, 1, PATCH, PATCH)).astype(np.float16)
+    P.write_scene(store, "train", "noisy-a", with_noise, scene_attrs("noisy-a"))
+    assert P.has_noise_maps(store, "train", "noisy-a")
+    for branch in ("diffuse", "specular"):
+        plain, read = P.PatchReader(store, "train", branch=branch), P.PatchReader(store, "train", branch=branch, noise=True)
+        assert plain[1]["features"].shape == (7, PATCH, PATCH)
+        assert read[1]["features"].shape == (8, PATCH, PATCH)
+        np.testing.assert_array_equal(read[1]["features"][:7], plain[1]["features"])
+        np.testing.assert_array_equal(read[1]["features"][7], with_noise[f"noise_{branch}"][1, 0].astype(np.float32))
+    assert "noise_diffuse" in P.store_summary(store)["splits"]["train"]["ranges"]
+
+    only_diffuse = {k: v for k, v in with_noise.items() if k != "noise_specular"}
+    with pytest.raises(P.PatchStoreError, match="missing array 'noise_specular'"):
+        P.write_scene(store, "train", "x", only_diffuse, scene_attrs("x"))
+    no_specular = {k: v for k, v in synthetic_scene(6, specular=False).items()}
+    no_specular.update({k: with_noise[k] for k in ("noise_diffuse", "noise_specular")})
+    with pytest.raises(P.PatchStoreError, match="noise_specular given for a scene without specular arrays"):
+        P.write_scene(store, "train", "x", no_specular, scene_attrs("x"))
+
+
+def test_a_store_without_noise_maps_is_refused_for_noise_input_naming_it_and_what_to_run(store):
+    write_synthetic(store, "train", "older", seed=7)  # tiled without noise maps
+    n = len(P.PatchReader(store, "train"))
+    assert n > 0 and not P.has_noise_maps(store, "train", "older")
+    attrs = zarr.open_group(store=LocalStore(Path(store) / "train" / "older"), mode="r").attrs
+    assert "has_noise" not in attrs  # a scene without them has the attributes it always had
+    with pytest.raises(P.PatchStoreError, match=rf"patch store {store}: scene train/older has no noise maps.*"
+                                                r"run `admc-pipe dataset` with this config and --set "
+                                                r"model.noise_input=true"):
+        P.PatchReader(store, "train", noise=True)

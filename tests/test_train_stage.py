@@ -206,3 +206,36 @@ def test_every_shipped_file_is_whole_and_is_the_architecture_its_entry_names():
         assert shipped_weights(model) == path
         generator = load_denoiser(path).generators["diffuse"]
         assert isinstance(generator, UNetGenerator) == (model.backbone == "unet"), entry["file"]
+
+
+def test_finetune_and_eval_with_the_noise_input(pretrained):
+    """`train --stage finetune --set model.noise_input=true`: the store gains noise maps (re-tiled from the
+    cached renders), the run lives beside the others (finetune-noise) and eval finds and runs it."""
+    workdir, _ = pretrained
+    weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
+    blocks = load_weights(weights)["metadata"]["model"]["blocks"]  # an earlier test may have changed it
+    noise = settings(workdir, steps=2) + [f"model.blocks={blocks}", "model.noise_input=true"]
+    out = cli("train", "--stage", "finetune", "--init", str(weights), *flags(noise))
+    assert out.returncode == 0, out.stderr
+    assert "the noise input added, its weights starting at 0" in out.stdout + out.stderr
+    checkpoint = load_checkpoint(workdir / "train" / "finetune-noise" / "checkpoint.pt")
+    assert checkpoint["step"] == 2 and checkpoint["model"]["noise_input"] is True
+    out = cli("eval", *flags(noise + ["eval.split='val'", "eval.repeats=1", "eval.also_ensemble_dark=false",
+                                      "eval.engine='torch'"]))
+    assert out.returncode == 0, out.stderr
+    assert f"admc: {workdir / 'train' / 'finetune-noise' / 'weights-fp16.pt'}" in (workdir / "eval" / "table1.md").read_text()
+
+
+def test_a_noise_input_model_without_weights_of_its_own_starts_from_those_without_it(tmp_path):
+    import dataclasses
+
+    plain = load_config().model
+    noise = dataclasses.replace(plain, noise_input=True)
+    entries = [{"file": "plain.pt", "model": dataclasses.asdict(plain)}]
+    (tmp_path / "manifest.json").write_text(json.dumps({"weights": entries}))
+    assert shipped_weights(noise, tmp_path) == tmp_path / "plain.pt"  # fine-tuning adds the input (load_init)
+    assert shipped_weights(dataclasses.replace(noise, channels=24), tmp_path) is None
+    entries.append({"file": "noise.pt", "model": dataclasses.asdict(noise)})
+    (tmp_path / "manifest.json").write_text(json.dumps({"weights": entries}))
+    assert shipped_weights(noise, tmp_path) == tmp_path / "noise.pt"
+    assert shipped_weights(plain, tmp_path) == tmp_path / "plain.pt"  # an input is never dropped

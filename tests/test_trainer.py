@@ -394,3 +394,50 @@ def test_weights_from_another_patch_size_name_tile_patch_size():
     other = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
     with pytest.raises(CheckpointError, match=r"diffuse critic weights do not fit .* tile.patch_size = 32"):
         other.load_networks(trained.generator.state_dict(), trained.critic.state_dict(), "w.pt")
+
+
+@pytest.fixture(scope="module")
+def noise_store(tmp_path_factory, variant):
+    """The tiny store with each branch's noise map per row (tile.noise_maps), what model.noise_input reads."""
+    return build_tiny_store(tmp_path_factory.mktemp("noise_store"), size=64, patch=32, extra=["tile.noise_maps=true"])
+
+
+def test_finetune_adds_the_noise_input_to_weights_trained_without_it(noise_store, tmp_path):
+    pre = train(noise_store, tmp_path / "pre", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY,
+                progress=False)  # a store with noise maps trains models without the input too
+    shipped = load_weights(pre.weights)["branches"]
+    noise_model = dataclasses.replace(TINY, noise_input=True)
+    still = dataclasses.replace(SETTINGS, steps=1, val_every=0, l1_warmup_steps=1, head_tail_start_step=100,
+                                lr_g_diffuse=1e-12, lr_g_specular=1e-12)
+    fine = train(noise_store, tmp_path / "fine", still, noise_model, stage="finetune", init_from=pre.weights,
+                 progress=False)
+    state = load_checkpoint(fine.checkpoint)
+    assert state["model"]["noise_input"] is True
+    for branch in ("diffuse", "specular"):
+        old = shipped[branch]["generator"]["encoder.layers.0.weight"].float()
+        new = state["branches"][branch]["generator"]["encoder.layers.0.weight"]
+        assert new.shape == (old.shape[0], 8, 3, 3)
+        # one Adam step of 5e-12 (the body's lr) moves each weight by at most ~5e-12: from the saved
+        # weights, and from 0 on the noise channel
+        torch.testing.assert_close(new[:, :7], old, rtol=0, atol=1e-10)
+        assert new[:, 7].abs().max() < 1e-10
+    with pytest.raises(ValueError, match=r"differ from the configured ones in \['noise_input'\]"):
+        train(noise_store, tmp_path / "back", still, TINY, stage="finetune", init_from=fine.weights, progress=False)
+
+    # a real step: the noise channel's weights leave exactly 0, so the networks learn from the map. Adam's
+    # first step moves a weight by lr * |g| / (|g| + 1e-8): nonzero for any nonzero gradient, below the
+    # body's lr (5 x 1e-4). (The tiny nets' encoder gradients are ~1e-12, so the steps are ~1e-7.)
+    moving = dataclasses.replace(SETTINGS, steps=1, val_every=0, l1_warmup_steps=1, head_tail_start_step=100)
+    stepped = load_checkpoint(train(noise_store, tmp_path / "step", moving, noise_model, stage="finetune",
+                                    init_from=pre.weights, progress=False).checkpoint)
+    for branch in ("diffuse", "specular"):
+        weights = stepped["branches"][branch]["generator"]["encoder.layers.0.weight"][:, 7]
+        assert torch.count_nonzero(weights) == weights.numel()
+        assert weights.abs().max() <= moving.lr_g_diffuse * moving.body_lr_factor
+
+
+def test_a_noise_input_model_refuses_a_store_without_noise_maps(store, tmp_path):
+    model = dataclasses.replace(TINY, noise_input=True)
+    with pytest.raises(PatchStoreError, match=rf"patch store {store}: scene train/\S+ has no noise maps.*"
+                                              r"admc-pipe dataset"):
+        train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=1, val_every=0), model, progress=False)

@@ -166,3 +166,43 @@ def test_feature_layout_slices_name_the_channels_transforms_writes():
     np.testing.assert_array_equal(f[..., DEPTH], T.depth_forward(depth, coverage))
     np.testing.assert_array_equal(f[..., ALBEDO], T.albedo_forward(albedo))
     assert [FEATURE_CHANNELS[s][0].split(".")[0] for s in (NORMAL, DEPTH, ALBEDO)] == ["normal", "depth", "albedo"]
+
+
+def test_noise_level_is_the_log_domain_std_of_a_pixel_mean():
+    """The delta method, checked by sampling: the std of log1p(mean / s) over many renders of a pixel."""
+    rng = np.random.default_rng(0)
+    radiance, scale, spp = 0.4, 0.25, 64
+    samples = rng.exponential(radiance, size=(20000, spp))  # a skewed per-sample distribution, mean = radiance
+    means = samples.mean(axis=1)
+    empirical = np.log1p(means / scale).std()
+    variance = np.full((1, 1, 3), samples.var(axis=1, ddof=1).mean() / spp)
+    level = T.noise_forward(variance, np.full((1, 1, 3), radiance), scale)
+    assert level.shape == (1, 1, 1) and level.dtype == np.float32
+    std = np.expm1(level[0, 0, 0] * np.log1p(1 / T.NOISE_STD_UNIT)) * T.NOISE_STD_UNIT
+    assert std == pytest.approx(empirical, rel=0.03)  # 20000 draws: ~1% sampling error
+
+
+def test_noise_maps_of_the_two_branches_use_their_own_log_domains():
+    var = np.array([[[0.04, 0.09, 0.16]]])
+    x = np.array([[[1.0, 2.0, 3.0]]])
+    albedo = np.array([[[0.5, 0.0, 1.0]]])
+    diffuse = np.sqrt(var) / (x + np.clip(albedo, 0, 1) + T.EPS)
+    specular = np.sqrt(var) / (x + 1.0)
+    unit = T.NOISE_STD_UNIT
+    assert T.diffuse_noise(var, x, albedo)[0, 0, 0] == pytest.approx(
+        np.log1p(diffuse.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
+    assert T.specular_noise(var, x)[0, 0, 0] == pytest.approx(
+        np.log1p(specular.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
+    assert T.specular_noise(np.zeros_like(var), x)[0, 0, 0] == 0.0  # converged: nothing left to remove
+    one = T.specular_noise(np.full((1, 1, 3), 4.0), np.ones((1, 1, 3)))  # std 2 / (1 + 1) = 1
+    assert one[0, 0, 0] == pytest.approx(1.0, rel=1e-6)
+
+
+def test_noise_map_and_variance_sanitizing_stay_finite_on_hostile_values():
+    var = np.array([[[np.nan, np.inf, -np.inf], [-1.0, 1e30, 0.5]]], dtype=np.float32)
+    x = np.array([[[np.nan, np.inf, 0.0], [1e30, -1.0, 0.0]]], dtype=np.float32)
+    level = T.specular_noise(var, x)
+    assert np.isfinite(level).all() and (level >= 0).all()
+    clean, counts = T.sanitize_variance(var)
+    assert counts == {"nan": 1, "posinf": 1, "neginf": 1, "below_min": 1, "above_max": 1}
+    assert clean.tolist() == [[[0.0, T.NOISE_VARIANCE_MAX, 0.0], [0.0, T.NOISE_VARIANCE_MAX, 0.5]]]

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from admc.common.diff import differing_keys
+from admc.errors import AdmcError
 
 from ..nets.backbones import build_generator
 from ..nets.generator import Generator
@@ -31,10 +32,13 @@ from ..transforms import (
     RADIANCE_MAX,
     diffuse_forward,
     diffuse_inverse,
+    diffuse_noise,
     features,
     sanitize,
+    sanitize_variance,
     specular_forward,
     specular_inverse,
+    specular_noise,
 )
 from .engines import check_engine, default_precision, onnx_generators, resolve_engine
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
@@ -42,6 +46,8 @@ from .oidn_base import oidn_bases
 from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
+VARIANCE_LAYERS = {"diffuse_var": 3, "specular_var": 3}
+"""Optional: what weights with model.noise_input read (the variance of each pixel's mean, per branch)."""
 MISSING_DEPTH = 1.0
 """Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
 environment pixels (no geometry information), and coverage 1."""
@@ -51,6 +57,13 @@ LOG_MAX = {
     "diffuse": float(np.log1p(RADIANCE_MAX / EPS)),
     "specular": float(np.log1p(RADIANCE_MAX)),
 }
+
+
+class MissingVarianceError(AdmcError, KeyError):
+    """Weights with model.noise_input were given an input without the variance layers they read."""
+
+    def __str__(self) -> str:  # KeyError's own would quote the message
+        return str(self.args[0])
 
 
 @dataclass
@@ -137,6 +150,9 @@ class FullImageDenoiser:
         if compile and engine != "torch":
             raise ValueError(f"FullImageDenoiser: compile is torch.compile, engine {engine!r} compiles its own graph")
         self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
+        self.noise_branches = {branch for branch, g in (("diffuse", diffuse), ("specular", specular))
+                               if getattr(getattr(g, "config", None), "noise_input", False)}
+        """The branches whose generator reads its noise map (model.noise_input) as a last feature channel."""
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
             self.generators["specular"] = self._prepare(specular)
@@ -174,10 +190,24 @@ class FullImageDenoiser:
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
         return self(layers).image
 
+    def missing_layers(self, layers: dict[str, np.ndarray]) -> list[str]:
+        """The variance layers these weights read (model.noise_input) that `layers` lacks, for the branches
+        that would run on them."""
+        branches = ["diffuse"] + (["specular"] if "specular" in layers and "specular" in self.generators else [])
+        return [f"{b}_var" for b in branches if b in self.noise_branches and f"{b}_var" not in layers]
+
     def __call__(self, layers: dict[str, np.ndarray]) -> DenoiseResult:
-        """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays."""
+        """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays, and
+        diffuse_var [and specular_var] (the variance of each pixel's mean) for weights with model.noise_input."""
         start = time.perf_counter()
-        clean, sanitized = sanitize_layers(layers)
+        missing = self.missing_layers(layers)
+        if missing:
+            raise MissingVarianceError(
+                f"denoiser input lacks layer(s) {', '.join(missing)}, which {self.source or 'these weights'} read "
+                "(model.noise_input: the variance of each pixel's mean, as `admc-pipe render` writes)")
+        run_specular = "specular" in layers and "specular" in self.generators
+        reads = tuple(f"{b}_var" for b in ("diffuse", "specular")[:1 + run_specular] if b in self.noise_branches)
+        clean, sanitized = sanitize_layers(layers, reads)
         run_specular = "specular" in clean and "specular" in self.generators
         gain = exposure_gain(_beauty(clean["diffuse"], clean.get("specular"))) if self.normalize_exposure else 1.0
         feats = self._tensor(features(clean["normal"], clean["depth"], clean["albedo"], clean["coverage"]))
@@ -220,12 +250,14 @@ class FullImageDenoiser:
         if run_specular:
             inputs["specular"] = specular_forward(exposed["specular"][region])
         feats = feats[(..., *region)]
+        branch_feats = {branch: self._with_noise(branch, feats, clean, exposed, gain, region) for branch in inputs}
 
         self.synchronize()
         net_start = time.perf_counter()
         outputs, nonfinite, tiles = {}, 0, 1
         for branch, log_input in inputs.items():
-            out, tiles = self._run(self.generators[branch], self._tensor(log_input), feats, bases.get(branch))
+            out, tiles = self._run(self.generators[branch], self._tensor(log_input), branch_feats[branch],
+                                   bases.get(branch))
             nonfinite += int((~torch.isfinite(out)).sum())
             outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
@@ -238,6 +270,17 @@ class FullImageDenoiser:
         else:
             specular = clean["specular"][region] if "specular" in clean else None  # passed through, never written
         return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
+
+    def _with_noise(self, branch: str, feats: Tensor, clean: dict[str, np.ndarray], exposed: dict[str, np.ndarray],
+                    gain: float, region: tuple[slice, slice]) -> Tensor:
+        """The features a branch's generator reads: + its noise map for model.noise_input, from the exposed
+        radiance (a variance scales with the square of the exposure), over `region`."""
+        if branch not in self.noise_branches:
+            return feats
+        variance = clean[f"{branch}_var"][region] * np.float32(gain) ** 2
+        noise = (diffuse_noise(variance, exposed["diffuse"][region], clean["albedo"][region]) if branch == "diffuse"
+                 else specular_noise(variance, exposed["specular"][region]))
+        return torch.cat([feats, self._tensor(noise)], dim=1).contiguous(memory_format=MEMORY_FORMAT)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
@@ -310,8 +353,10 @@ def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarr
     return {branch: np.where(environment, inputs[branch], out) for branch, out in outputs.items()}
 
 
-def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
-    """Check shapes, fill a missing depth/coverage (MISSING_DEPTH, 1) and sanitize every layer.
+def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
+                    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
+    """Check shapes, fill a missing depth/coverage (MISSING_DEPTH, 1) and sanitize every layer, and the
+    `variances` (names of VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
 
     Returns the clean float32 layers and, per layer with any repair, the nonzero counts of NaN,
     +-Inf and out-of-range values (negative radiance or albedo, radiance above RADIANCE_MAX, ...).
@@ -320,11 +365,12 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
     if missing:
         raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)} (has {', '.join(sorted(layers))})")
     channels = {"diffuse": 3, "specular": 3, "albedo": 3, "normal": 3, "depth": 1, "coverage": 1}
+    shapes = {**channels, **{name: VARIANCE_LAYERS[name] for name in variances}}
     size = np.shape(layers["diffuse"])[:2]
     for name, array in layers.items():
-        if name in channels and np.shape(array) != (*size, channels[name]):
+        if name in shapes and np.shape(array) != (*size, shapes[name]):
             raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(array)}, "
-                             f"expected {(*size, channels[name])} to match diffuse")
+                             f"expected {(*size, shapes[name])} to match diffuse")
     if size[0] < 1 or size[1] < 1:
         raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
     filled = dict(layers)
@@ -334,6 +380,12 @@ def sanitize_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray
     for name in channels:
         if name in filled:
             clean[name], counts = sanitize(filled[name], name)
+            nonzero = {kind: n for kind, n in counts.items() if n}
+            if nonzero:
+                report[name] = nonzero
+    for name in variances:
+        if name in filled:
+            clean[name], counts = sanitize_variance(filled[name])
             nonzero = {kind: n for kind, n in counts.items() if n}
             if nonzero:
                 report[name] = nonzero

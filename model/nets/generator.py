@@ -42,6 +42,7 @@ class GeneratorConfig:
     backbone: str = "residual"
     levels: int = 3           # unet: times the resolution is halved (blocks then run at 1/2^levels)
     base: str = "noisy"       # "oidn": out = ReLU(OIDN + tail), the tail's last conv starting at 0 (see Generator)
+    noise_input: bool = False  # features carry the branch's noise map as an 8th channel (transforms.noise_forward)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -61,6 +62,11 @@ class GeneratorConfig:
     @property
     def modulated(self) -> bool:
         return self.mode in MODULATED_MODES
+
+    @property
+    def feature_channels(self) -> int:
+        """Channels of the `features` the generator is called with: the 7 auxiliary ones [+ the noise map]."""
+        return N_FEATURES + int(self.noise_input)
 
     @property
     def refines(self) -> bool:
@@ -181,8 +187,9 @@ class Generator(nn.Module):
         super().__init__()
         self.config = config
         c = config.channels
-        in_channels = COLOR_CHANNELS + N_FEATURES if config.mode == "concat" else COLOR_CHANNELS
-        encoder_in = N_FEATURES + COLOR_CHANNELS if config.refines else N_FEATURES
+        f = config.feature_channels
+        in_channels = COLOR_CHANNELS + f if config.mode == "concat" else COLOR_CHANNELS
+        encoder_in = f + COLOR_CHANNELS if config.refines else f
         self.encoder = (EncoderNet(config.encoder_channels, config.cond_channels, encoder_in)
                         if config.modulated else None)
         self.head = conv3x3(in_channels, c)
@@ -250,13 +257,13 @@ class Generator(nn.Module):
             return
         if features is None:
             raise ValueError(f"Generator (mode {self.config.mode!r}): features are required")
-        expected = (noisy.shape[0], N_FEATURES, *noisy.shape[2:])
+        expected = (noisy.shape[0], self.config.feature_channels, *noisy.shape[2:])
         if tuple(features.shape) != expected:
             raise ValueError(f"Generator: features must be {expected} to match noisy, got {tuple(features.shape)}")
 
     def forward(self, noisy: Tensor, features: Tensor | None = None, base: Tensor | None = None) -> Tensor:
-        """`features` (normal, depth, albedo; 7 channels) may be omitted only in mode "none"; `base` is
-        given exactly when the generator refines (config.base = "oidn")."""
+        """`features` (normal, depth, albedo; 7 channels, then the noise map with config.noise_input) may be
+        omitted only in mode "none"; `base` is given exactly when the generator refines (config.base = "oidn")."""
         self._check_inputs(noisy, features, base)
         # What the output corrects: the noisy input, or a refiner's base (which sees the noisy input
         # through the encoder instead).

@@ -29,6 +29,8 @@ class ModelSettings:
     backbone: str = "residual"    # residual (the paper's full-resolution body) | unet (multi-scale, model/nets/unet.py)
     levels: int = 3               # unet: resolution halvings; `blocks` then run at 1/2^levels
     base: str = "noisy"           # noisy (the paper's denoiser) | oidn (admc+oidn: corrects OIDN's output)
+    noise_input: bool = False     # the EncoderNet also reads the branch's per-pixel noise level, from the
+                                  # renders' variance buffers (transforms.noise_forward): inputs need *_var layers
 
     def check(self) -> None:
         positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels", "levels"))
@@ -36,6 +38,7 @@ class ModelSettings:
         require(self.backbone in BACKBONES, "backbone", f"{self.backbone!r} is not one of {BACKBONES}")
         require(self.critic_norm in NORMS, "critic_norm", f"{self.critic_norm!r} is not one of {NORMS}")
         require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
+        require(isinstance(self.noise_input, bool), "noise_input", f"must be true or false, got {self.noise_input!r}")
         require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
         require(self.base == "noisy" or self.mode in MODULATED_MODES, "base",
                 f"'oidn' needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
@@ -44,7 +47,8 @@ class ModelSettings:
     def generator_config(self) -> GeneratorConfig:
         return GeneratorConfig(channels=self.channels, blocks=self.blocks, cond_channels=self.cond_channels,
                                encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip,
-                               backbone=self.backbone, levels=self.levels, base=self.base)
+                               backbone=self.backbone, levels=self.levels, base=self.base,
+                               noise_input=self.noise_input)
 
     @classmethod
     def from_saved(cls, saved: dict) -> "ModelSettings":

@@ -10,9 +10,11 @@ import numpy as np
 import torch
 
 from admc.common.diff import differing_keys
+from admc.common.layout import N_FEATURES
 from admc.errors import TrainingError
 from admc.stores.checkpoints import read_networks
 
+from ..nets.generator import COLOR_CHANNELS
 from ..nets.settings import ModelSettings
 from .settings import TrainSettings
 
@@ -87,6 +89,25 @@ def load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict,
                             f"model.base = {model.base!r}; fine-tune from weights of the same base (the shipped "
                             "ones for either base are found automatically when --init is left out)")
     diff = differing_keys(saved, dataclasses.asdict(model))
+    if diff == ["noise_input"] and model.noise_input:
+        nets = {branch: {**state, "generator": with_noise_input(state["generator"], model)}
+                for branch, state in nets.items()}
+        return nets, transform, f"{init_from} (the noise input added, its weights starting at 0)"
     if diff:
         raise TrainingError(f"{init_from}: its model settings differ from the configured ones in {diff}")
     return nets, transform, str(init_from)
+
+
+def with_noise_input(state: dict, model: ModelSettings) -> dict:
+    """A generator's weights given one more feature channel, the noise map, with zero weights on it: the
+    widened generator computes exactly what the saved one did, and training starts from there."""
+    features_at = {"encoder.layers.0.weight": N_FEATURES}  # encoder input: features [+ noise], then a refiner's noisy
+    if model.mode == "concat":
+        features_at["head.weight"] = COLOR_CHANNELS + N_FEATURES  # head input: noisy, features [+ noise]
+    out = dict(state)
+    for key, at in features_at.items():
+        if key in out:
+            w = out[key]
+            zeros = torch.zeros((w.shape[0], 1, *w.shape[2:]), dtype=w.dtype)
+            out[key] = torch.cat([w[:, :at], zeros, w[:, at:]], dim=1)
+    return out

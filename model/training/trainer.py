@@ -66,9 +66,11 @@ class TrainResult:
 
 
 def _open_reader(run: _Run, split: str, transform: dict, branch: str, source: str) -> PatchReader:
-    """The rows of a split and branch, with their OIDN bases for a refiner (model.base = "oidn")."""
+    """The rows of a split and branch, with their OIDN bases for a refiner (model.base = "oidn") and their
+    noise maps in the features for model.noise_input."""
     try:
-        return PatchReader(run.store, split, expect_transform=transform, branch=branch, base=run.model.base == "oidn")
+        return PatchReader(run.store, split, expect_transform=transform, branch=branch,
+                           base=run.model.base == "oidn", noise=run.model.noise_input)
     except PatchStoreError as exc:
         raise PatchStoreError(f"refused for {source}: {exc}") from None
 
@@ -177,6 +179,8 @@ def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, 
     check_fresh_start(run.out_dir)
     if run.stage == "finetune":
         init_nets, transform, source = load_init(run.init_from, run.model)
+        if source != str(run.init_from):  # what load_init did to the weights (the noise input added)
+            run.say(f"finetune starts from {source}")
         return None, init_nets, transform, f"init weights {source}"
     if run.init_from is not None:
         raise TrainingError("init_from: only stage 'finetune' starts from existing weights")

@@ -131,6 +131,11 @@ def _score(test: TestImage, reference: np.ndarray, floor: float, denoisers: list
     progress, task = bar
     for denoiser in denoisers:
         progress.update(task, description=f"{denoiser.name} on {test.scene_id} @ {test.spp} spp")
+        missing = getattr(denoiser, "missing_layers", lambda _: [])(layers)  # model.noise_input weights
+        if missing:
+            raise EvalError(f"{test.noisy_path}: lacks layer(s) {', '.join(missing)}, which {denoiser.name}'s "
+                            f"weights {getattr(denoiser, 'source', None)} read (model.noise_input: the variance of "
+                            "each pixel's mean, as `admc-pipe render` writes)")
         image, seconds = timing.run(denoiser, layers)
         outputs[denoiser.name] = image
         records[denoiser.name] = _record(test, denoiser.name, denoiser.device, image, reference, seconds,

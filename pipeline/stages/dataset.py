@@ -80,9 +80,9 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "scene_hash": levels["reference"].params["scene_hash"],
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
                         "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed,
-                        "oidn_base": cfg.tile.oidn_base},
+                        "oidn_base": cfg.tile.oidn_base, **({"noise_maps": True} if noise_maps(cfg) else {})},
                     source=render.scene_source(spec))
-        if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled):
+        if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled, noise_maps(cfg)):
             cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders
         tiles.append(task)
     published, cached, renders_dir = run_corpus(cfg, tiles, renders, left_out, progress)
@@ -92,10 +92,18 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                        len(everything) - cached, cached, everything, retiled, skipped_files(left_out))
 
 
-def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str]) -> bool:
+def noise_maps(cfg: Config) -> bool:
+    """Whether tiling stores the noise maps: tile.noise_maps, or a model.noise_input that trains on them."""
+    return cfg.tile.noise_maps or cfg.model.noise_input
+
+
+def _scene_intact(store: Path, split: str, scene_id: str, damaged: list[str], noise: bool = False) -> bool:
     """Whether a tiled scene is published and its files match their checksums; damaged ones are
-    described in `damaged` ("split/scene (arrays)") so the user learns what was repaired."""
+    described in `damaged` ("split/scene (arrays)") so the user learns what was repaired. With `noise`,
+    a scene tiled since without noise maps (by a run without them, into the same store) is not."""
     if not patches.has_scene(store, split, scene_id):
+        return False
+    if noise and not patches.has_noise_maps(store, split, scene_id):
         return False
     arrays = patches.damaged_arrays(store, split, scene_id)
     if arrays:

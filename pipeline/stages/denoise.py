@@ -3,7 +3,8 @@
 Two layouts are accepted:
 
 * one multi-layer EXR with admc's layer names: `diffuse.R/G/B`, `albedo.R/G/B`, `normal.X/Y/Z`,
-  optional `specular.R/G/B`, `depth.Z`, `coverage.A` (what `admc-pipe render` writes);
+  optional `specular.R/G/B`, `depth.Z`, `coverage.A`, `diffuse_var.R/G/B`, `specular_var.R/G/B` (what
+  `admc-pipe render` writes; weights with model.noise_input need the variance layers);
 * Open Image Denoise style separate files sharing a base name: the colour `NAME.hdr.exr` (or
   `NAME.exr`), `NAME.alb.exr`, `NAME.nrm.exr`, optional `NAME.diffuse.exr` + `NAME.specular.exr`
   (then they are the split and the colour is not needed) and optional `NAME.depth.exr`. A combined
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from admc.errors import AdmcError
-from admc.model.inference.denoiser import MISSING_DEPTH, DenoiseResult
+from admc.model.inference.denoiser import MISSING_DEPTH, VARIANCE_LAYERS, DenoiseResult
 from admc.stores.exr import BEAUTY, exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
@@ -83,7 +84,8 @@ def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
                                 f"{', '.join(present) or 'no admc layers'}); expected diffuse.R/G/B, "
                                 f"albedo.R/G/B, normal.X/Y/Z and optionally specular, depth.Z, coverage.A (or, as "
                                 f"separate files, {path.stem}.alb.exr and {path.stem}.nrm.exr beside it)")
-    wanted = [name for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage") if name in present]
+    wanted = [name for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage", *VARIANCE_LAYERS)
+              if name in present]
     layers = read_exr(path, wanted)
     notes = []
     if "specular" not in layers:

@@ -25,6 +25,10 @@ ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": N_FEATURES}
 CROP_IMAGES = {"ref_diffuse": 3, "ref_specular": 3}
 BASE_IMAGES = {"base_diffuse": 3, "base_specular": 3}
 """Optional row arrays (tile.oidn_base): OIDN's output for the row, what model.base = "oidn" refines."""
+NOISE_IMAGES = {"noise_diffuse": 1, "noise_specular": 1}
+"""Optional row arrays (tile.noise_maps): each branch's noise level (model/transforms.noise_forward), what
+model.noise_input reads as the last feature channel. Not in LAYOUT: the root attributes (and with them the
+store's fingerprint, which a training resume checks) stay those of a store without them."""
 SPECULAR_ARRAYS = ("noisy_specular", "ref_specular")
 REQUIRED_ROOT_ATTRS = ("transform", "patch_size")
 REQUIRED_SCENE_ATTRS = ("scene_hash", "image_size", "sanitization")
@@ -135,6 +139,11 @@ def has_scene(path: str | os.PathLike, split: str, scene_id: str) -> bool:
     _check_split(split)
     _check_name(scene_id, "scene_id")
     return (Path(path) / split / scene_id / "zarr.json").is_file()
+
+
+def has_noise_maps(path: str | os.PathLike, split: str, scene_id: str) -> bool:
+    """True when a published scene keeps noise maps (tile.noise_maps)."""
+    return bool(_open_root(Path(path))[f"{split}/{scene_id}"].attrs.get("has_noise", False))
 
 
 def list_scenes(path: str | os.PathLike, split: str) -> list[str]:

@@ -12,7 +12,7 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BRANCHES
-from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
+from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, NOISE_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
                                         _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
                                         list_scenes)
 
@@ -25,10 +25,12 @@ class PatchReader:
     once per scene; each item then reads exactly one chunk of each image array. Picklable (for
     DataLoader workers): array handles are reopened lazily in each process. With `base`, items also
     carry the row's stored OIDN output ("base", for model.base = "oidn"), and every scene must have it.
+    With `noise`, the branch's noise map is appended to "features" as their last channel (what a
+    model.noise_input generator reads), and every scene must have it.
     """
 
     def __init__(self, path: str | os.PathLike, split: str, expect_transform: dict | None = None,
-                 branch: str = "diffuse", base: bool = False):
+                 branch: str = "diffuse", base: bool = False, noise: bool = False):
         _check_split(split)
         if branch not in BRANCHES:
             raise PatchStoreError(f"branch {branch!r}: must be one of {BRANCHES}")
@@ -36,6 +38,7 @@ class PatchReader:
         self.split = split
         self.branch = branch
         self.base = base
+        self.noise = noise
         root = _open_root(self.path)
         self.attrs = dict(root.attrs)
         if expect_transform is not None:
@@ -58,6 +61,12 @@ class PatchReader:
                 if branch == "specular" and not group.attrs["has_specular"]:
                     continue
                 has_base = group.attrs.get("has_base", False)
+                has_noise = group.attrs.get("has_noise", False)
+            if noise and not has_noise:
+                raise PatchStoreError(
+                    f"patch store {self.path}: scene {split}/{scene} has no noise maps, which model.noise_input = "
+                    "true trains on (it was tiled without them); run `admc-pipe dataset` with this config and "
+                    "--set model.noise_input=true (or tile.noise_maps=true): it re-tiles from the cached renders")
             if base and not has_base:
                 raise PatchStoreError(
                     f"patch store {self.path}: scene {split}/{scene} has no OIDN bases, which model.base = 'oidn' "
@@ -112,6 +121,8 @@ class PatchReader:
         }
         if self.base:
             item["base"] = self._patch(scene, f"base_{self.branch}", row)
+        if self.noise:
+            item["features"] = np.concatenate([item["features"], self._patch(scene, f"noise_{self.branch}", row)])
         return item
 
     def _patch(self, scene: str, name: str, index: int) -> np.ndarray:
@@ -154,7 +165,7 @@ def store_summary(path: str | os.PathLike) -> dict:
             entry["crops"] += int(group.attrs["n_crops"])
             for spp, count in zip(*np.unique(group["spp"][...], return_counts=True)):
                 entry["rows_per_spp"][int(spp)] = entry["rows_per_spp"].get(int(spp), 0) + int(count)
-            for name in (*ROW_IMAGES, *BASE_IMAGES, *CROP_IMAGES):
+            for name in (*ROW_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, *CROP_IMAGES):
                 if name in group:
                     with _reading(path, split, scene, name):
                         values = group[name][...]

@@ -13,7 +13,8 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.stores.atomic import fsync_path
-from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, FORMAT, FORMAT_VERSION, LAYOUT, REQUIRED_ROOT_ATTRS,
+from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, FORMAT, FORMAT_VERSION, LAYOUT, NOISE_IMAGES,
+                                        REQUIRED_ROOT_ATTRS,
                                         REQUIRED_SCENE_ATTRS, ROW_IMAGES, SHARD_PATCHES, SPECULAR_ARRAYS, SPLITS,
                                         STAGING, PatchStoreError, _array_digest, _check_name, _check_split, _jsonable,
                                         _lookup, _open_root, exists, list_scenes)
@@ -67,7 +68,7 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
 
 
 def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> dict[str, np.ndarray]:
-    known = {*ROW_IMAGES, *CROP_IMAGES, *BASE_IMAGES, "spp", "crop", "origin"}
+    known = {*ROW_IMAGES, *CROP_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, "spp", "crop", "origin"}
     unknown = set(arrays) - known
     if unknown:
         raise PatchStoreError(f"{where}: unknown arrays {sorted(unknown)} (known: {sorted(known)})")
@@ -75,10 +76,11 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     required = ["noisy_diffuse", "features", "ref_diffuse", "spp", "crop", "origin"]
     if specular:
         required += list(SPECULAR_ARRAYS)
-    if any(name in arrays for name in BASE_IMAGES):  # bases come for every branch the scene has
-        required += ["base_diffuse"] + (["base_specular"] if specular else [])
-        if "base_specular" in arrays and not specular:
-            raise PatchStoreError(f"{where}: base_specular given for a scene without specular arrays")
+    for kind, images in (("base", BASE_IMAGES), ("noise", NOISE_IMAGES)):  # for every branch the scene has
+        if any(name in arrays for name in images):
+            required += [f"{kind}_diffuse"] + ([f"{kind}_specular"] if specular else [])
+            if f"{kind}_specular" in arrays and not specular:
+                raise PatchStoreError(f"{where}: {kind}_specular given for a scene without specular arrays")
     for name in required:
         if name not in arrays:
             raise PatchStoreError(f"{where}: missing array {name!r}")
@@ -87,7 +89,7 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     if n == 0 or m == 0:
         raise PatchStoreError(f"{where}: a scene needs at least one row and one crop (got {n} rows, {m} crops)")
     out = {}
-    for name, channels in {**ROW_IMAGES, **BASE_IMAGES, **CROP_IMAGES}.items():
+    for name, channels in {**ROW_IMAGES, **BASE_IMAGES, **NOISE_IMAGES, **CROP_IMAGES}.items():
         if name not in arrays:
             continue
         a = np.asarray(arrays[name])
@@ -151,6 +153,7 @@ def write_scene(path: str | os.PathLike, split: str, scene_id: str, arrays: dict
     attrs = _jsonable({
         **scene_attrs, "scene_id": scene_id, "has_specular": "noisy_specular" in data,
         "has_base": "base_diffuse" in data,
+        **({"has_noise": True} if "noise_diffuse" in data else {}),  # absent without: attributes as before
         "n_rows": len(data["spp"]), "n_crops": len(data["origin"]),
         "spp_levels": sorted({int(s) for s in data["spp"]}),
     }, f"{where}: scene_attrs")
