@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pyoidn
 
+from admc.common.buffers import sanitize
 from admc.common.metrics import one_minus_ssim, relmse
-from admc.model import transforms as tf
 from admc.model.inference.oidn_base import QUALITY, oidn_bases
 from admc.stores.exr import read_exr
 
@@ -40,7 +40,7 @@ def main() -> None:
         ref = read_exr(scene / "reference.exr")
         ref = ref["diffuse"] + ref.get("specular", 0.0)
         for noisy in sorted(scene.glob("spp*.exr")):
-            layers = {name: tf.sanitize(a, name)[0] for name, a in read_exr(noisy).items()
+            layers = {name: sanitize(a, name)[0] for name, a in read_exr(noisy).items()
                       if name in ("diffuse", "specular", "albedo", "normal")}
             spp = int(noisy.stem[3:])
             start = time.perf_counter()

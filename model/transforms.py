@@ -2,34 +2,20 @@
 
 Radiance goes into a log domain so that HDR values fit FP16 with even relative precision; diffuse is
 first demodulated by albedo (the network sees texture-free illumination, as in the authors' code).
-Features are mapped to [0, 1]. Every value that could turn into NaN/Inf is handled here, counted,
-and reported by the caller: nothing non-finite passes on silently.
+Features are mapped to [0, 1]. Inputs are sanitised first (admc.common.buffers.sanitize, counted and
+reported by the caller); the forward transforms refuse anything non-finite, so nothing passes on silently.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from admc.common.buffers import DENOISER_LAYERS, LAYERS, RADIANCE_MAX, VARIANCE_MAX, sanitize
 from admc.common.layout import FEATURE_CHANNELS, FP16_MAX
 
 EPS = 0.00316
 """Added to albedo before demodulating diffuse (value from the authors' code)."""
 
-RADIANCE_MAX = FP16_MAX
-"""Linear radiance is clamped here (+Inf and huge fireflies alike), so every stored value also
-inverts to an FP16-representable linear value. Directly seen emitters above it are clipped."""
-
 SPEC_VERSION = 1
-
-# kind -> (value for NaN, lower bound, upper bound). -Inf goes to the lower bound, +Inf to the upper
-# one (0 for depth: a hit without a finite distance carries no depth and is treated as environment).
-_RULES: dict[str, tuple[float, float, float | None]] = {
-    "diffuse": (0.0, 0.0, RADIANCE_MAX),
-    "specular": (0.0, 0.0, RADIANCE_MAX),
-    "albedo": (0.0, 0.0, 1.0),
-    "normal": (0.0, -1.0, 1.0),
-    "depth": (0.0, 0.0, None),
-    "coverage": (0.0, 0.0, 1.0),
-}
 
 
 def transform_spec() -> dict:
@@ -39,7 +25,8 @@ def transform_spec() -> dict:
         "eps": EPS,
         "radiance_max": RADIANCE_MAX,
         "fp16_max": FP16_MAX,
-        "sanitize": {kind: {"nan": nan, "min": lo, "max": hi} for kind, (nan, lo, hi) in _RULES.items()},
+        "sanitize": {name: {"nan": LAYERS[name].nan, "min": LAYERS[name].low, "max": LAYERS[name].high}
+                     for name in DENOISER_LAYERS},
         "diffuse": "log1p(clip(diffuse, 0, radiance_max) / (albedo + eps)), albedo = clip(albedo, 0, 1)",
         "diffuse_inverse": "expm1(d) * (albedo + eps)",
         "specular": "log1p(clip(specular, 0, radiance_max))",
@@ -53,41 +40,6 @@ def transform_spec() -> dict:
 
 
 TRANSFORM_PARAMS = transform_spec()
-
-
-def _kind(name: str) -> str:
-    kind = name.rsplit("_", 1)[-1]
-    if kind not in _RULES:
-        raise ValueError(f"sanitize: unknown buffer {name!r} (its last '_' part must be one of {sorted(_RULES)})")
-    return kind
-
-
-def sanitize(x: np.ndarray, name: str) -> tuple[np.ndarray, dict[str, int]]:
-    """Replace NaN, +-Inf and out-of-range values by the rule of the buffer's kind; count each case.
-
-    `name` is a buffer name such as "diffuse", "ref_specular" or "albedo"; its last "_" part picks the
-    rule. Returns a new float32 array and {"nan", "posinf", "neginf", "below_min", "above_max"} counts.
-    """
-    nan_to, lo, hi = _RULES[_kind(name)]
-    x = np.asarray(x, dtype=np.float32)
-    nan = np.isnan(x)
-    posinf = np.isposinf(x)
-    neginf = np.isneginf(x)
-    finite = ~(nan | posinf | neginf)
-    below = finite & (x < lo)
-    above = finite & (x > hi) if hi is not None else np.zeros_like(finite)
-    clean = np.where(finite, x, np.float32(nan_to))
-    clean[posinf] = hi if hi is not None else 0.0
-    clean[neginf] = lo
-    clean = np.clip(clean, lo, hi) if hi is not None else np.maximum(clean, lo)
-    counts = {
-        "nan": int(nan.sum()),
-        "posinf": int(posinf.sum()),
-        "neginf": int(neginf.sum()),
-        "below_min": int(below.sum()),
-        "above_max": int(above.sum()),
-    }
-    return clean.astype(np.float32, copy=False), counts
 
 
 def _require_finite(func: str, **arrays: np.ndarray) -> None:
@@ -128,9 +80,8 @@ def specular_inverse(s: np.ndarray) -> np.ndarray:
 
 
 def normal_forward(normal: np.ndarray) -> np.ndarray:
-    """Shading normals from [-1, 1] to [0, 1]; NaN -> 0 first (then 0.5), +-Inf end at 1 or 0."""
-    n = np.nan_to_num(np.asarray(normal, dtype=np.float32), nan=0.0, posinf=1.0, neginf=-1.0)
-    return np.clip((n + 1.0) * 0.5, 0.0, 1.0).astype(np.float32)
+    """Shading normals from [-1, 1] to [0, 1], sanitised first: NaN ends at 0.5, +-Inf at 1 or 0."""
+    return (sanitize(normal, "normal")[0] + np.float32(1.0)) * np.float32(0.5)
 
 
 def depth_forward(depth: np.ndarray, coverage: np.ndarray) -> np.ndarray:
@@ -153,9 +104,8 @@ def depth_forward(depth: np.ndarray, coverage: np.ndarray) -> np.ndarray:
 
 
 def albedo_forward(albedo: np.ndarray) -> np.ndarray:
-    """Albedo clipped to [0, 1], NaN -> 0."""
-    a = np.nan_to_num(np.asarray(albedo, dtype=np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-    return np.clip(a, 0.0, 1.0)
+    """Albedo sanitised: clipped to [0, 1], NaN -> 0."""
+    return sanitize(albedo, "albedo")[0]
 
 
 def features(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, coverage: np.ndarray) -> np.ndarray:
@@ -189,25 +139,9 @@ def to_fp16(x: np.ndarray) -> tuple[np.ndarray, int]:
 # model.noise_input: each branch's per-pixel noise level, from the renders' variance buffers. Not part of
 # transform_spec (weights without the input never read it; a store keeps it only with tile.noise_maps).
 
-NOISE_VARIANCE_MAX = float(RADIANCE_MAX) ** 2
-"""A variance buffer's +Inf and values beyond this are set to it (the variance of a clamped radiance)."""
-
 NOISE_STD_UNIT = 1e-3
 """The noise map's unit: a standard deviation of 0.001 in the log domain, about what a 64-spp studio
 render's flat regions carry. The map is log1p(std / unit) / log1p(1 / unit)."""
-
-
-def sanitize_variance(variance: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
-    """A variance buffer with NaN and negative values set to 0 and +Inf (or beyond) to NOISE_VARIANCE_MAX;
-    the counts as sanitize() gives them. Not a transform_spec rule: only noise_forward reads variances."""
-    x = np.asarray(variance, dtype=np.float32)
-    nan, posinf, neginf = np.isnan(x), np.isposinf(x), np.isneginf(x)
-    finite = np.isfinite(x)
-    below, above = finite & (x < 0), finite & (x > NOISE_VARIANCE_MAX)
-    clean = np.clip(np.nan_to_num(x, nan=0.0, posinf=NOISE_VARIANCE_MAX, neginf=0.0), 0.0, NOISE_VARIANCE_MAX)
-    counts = {"nan": int(nan.sum()), "posinf": int(posinf.sum()), "neginf": int(neginf.sum()),
-              "below_min": int(below.sum()), "above_max": int(above.sum())}
-    return clean.astype(np.float32, copy=False), counts
 
 
 def noise_forward(variance: np.ndarray, radiance: np.ndarray, scale: np.ndarray | float) -> np.ndarray:
@@ -222,9 +156,9 @@ def noise_forward(variance: np.ndarray, radiance: np.ndarray, scale: np.ndarray 
     (a linear map of std, mostly below 0.05, gives a weight that starts at 0 almost nothing to learn
     from). NaN and negative variances count as 0.
     """
-    var = np.nan_to_num(np.asarray(variance, dtype=np.float64), nan=0.0, posinf=NOISE_VARIANCE_MAX, neginf=0.0)
+    var = np.nan_to_num(np.asarray(variance, dtype=np.float64), nan=0.0, posinf=VARIANCE_MAX, neginf=0.0)
     x = np.nan_to_num(np.asarray(radiance, dtype=np.float64), nan=0.0, posinf=RADIANCE_MAX, neginf=0.0)
-    std = np.sqrt(np.clip(var, 0.0, NOISE_VARIANCE_MAX)) / (np.clip(x, 0.0, RADIANCE_MAX) + scale)
+    std = np.sqrt(np.clip(var, 0.0, VARIANCE_MAX)) / (np.clip(x, 0.0, RADIANCE_MAX) + scale)
     level = np.log1p(std.mean(axis=-1, keepdims=True) / NOISE_STD_UNIT) / np.log1p(1.0 / NOISE_STD_UNIT)
     return level.astype(np.float32)
 

@@ -13,25 +13,13 @@ import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
 
+from admc.common.buffers import LAYERS
 from admc.common.layout import FP16_MAX
 from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
-RGB = ("R", "G", "B")
-BEAUTY = ""  # the final image as plain R, G, B channels (what viewers show first)
-LAYER_CHANNELS: dict[str, tuple[str, ...]] = {
-    BEAUTY: RGB,
-    "diffuse": RGB,
-    "specular": RGB,
-    "albedo": RGB,
-    "normal": ("X", "Y", "Z"),
-    "depth": ("Z",),
-    "coverage": ("A",),
-    "diffuse_var": RGB,
-    "specular_var": RGB,
-}
 # Layers where a negative value means a broken render (normals are legitimately negative).
-NONNEGATIVE_LAYERS = frozenset({"diffuse", "specular", "albedo", "depth", "coverage", "diffuse_var", "specular_var"})
+NONNEGATIVE_LAYERS = frozenset(name for name, layer in LAYERS.items() if layer.low >= 0)
 PRECISIONS = {"half": np.float16, "float": np.float32}
 # Header attributes OpenEXR manages itself: user attributes must not shadow them.
 RESERVED_ATTRIBUTES = frozenset({
@@ -74,7 +62,7 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "ha
             raise ExrError(f"{path}: layer {name!r} has {int(overflow.sum())} finite values beyond "
                            f"+-{FP16_MAX:g} that half precision would turn into inf; clamp them or use "
                            f"precision='float'")
-        for i, channel in enumerate(LAYER_CHANNELS[name]):
+        for i, channel in enumerate(LAYERS[name].channels):
             channels[_full_name(name, channel)] = np.ascontiguousarray(stored[:, :, i])
     with publishing(path) as tmp, tmp.open("wb") as stream:  # through Python: a full disk raises OSError
         OpenEXR.File(header, channels).write(stream)
@@ -85,9 +73,9 @@ def _check_layers(path: Path, layers: dict[str, np.ndarray]) -> None:
         raise ExrError(f"{path}: no layers to write")
     sizes = {}
     for name, array in layers.items():
-        if name not in LAYER_CHANNELS:
-            raise ExrError(f"{path}: unknown layer {name!r}; known layers: {', '.join(LAYER_CHANNELS)}")
-        expected = len(LAYER_CHANNELS[name])
+        if name not in LAYERS:
+            raise ExrError(f"{path}: unknown layer {name!r}; known layers: {', '.join(LAYERS)}")
+        expected = len(LAYERS[name].channels)
         shape = np.shape(array)
         if len(shape) != 3 or shape[2] != expected:
             raise ExrError(f"{path}: layer {name!r} must be (H, W, {expected}), got shape {shape}")
@@ -125,7 +113,7 @@ def _full_name(layer: str, channel: str) -> str:
 
 
 def _group_layers(channel_names: Iterable[str]) -> dict[str, list[str]]:
-    """'diffuse.R' -> {'diffuse': ['R']}; channels without a layer prefix form the BEAUTY layer ''."""
+    """'diffuse.R' -> {'diffuse': ['R']}; channels without a layer prefix form the beauty layer ''."""
     grouped: dict[str, list[str]] = {}
     for full in channel_names:
         layer, _, channel = full.rpartition(".")
@@ -146,16 +134,16 @@ def read_exr(path: Path, layers: list[str] | None = None) -> dict[str, np.ndarra
     names = _channel_names(exr)
     present = _group_layers(names)
     if layers is None:
-        layers = [name for name in LAYER_CHANNELS if name in present]
+        layers = [name for name in LAYERS if name in present]
         if not layers:
             raise ExrError(f"{path}: holds no admc layer (channels: {', '.join(names)})")
     for name in layers:
-        if name not in LAYER_CHANNELS:
-            raise ExrError(f"{path}: unknown layer {name!r}; known layers: {', '.join(LAYER_CHANNELS)}")
+        if name not in LAYERS:
+            raise ExrError(f"{path}: unknown layer {name!r}; known layers: {', '.join(LAYERS)}")
         if name not in present:
             holds = ", ".join(sorted(present)) or f"no layers, only channels {', '.join(names)}"
             raise ExrError(f"{path}: has no layer {name!r}; it holds {holds}")
-        missing = [c for c in LAYER_CHANNELS[name] if c not in present[name]]
+        missing = [c for c in LAYERS[name].channels if c not in present[name]]
         if missing:
             raise ExrError(f"{path}: layer {name!r} lacks channel(s) {', '.join(missing)} "
                            f"(has {', '.join(present[name])})")
@@ -165,7 +153,7 @@ def read_exr(path: Path, layers: list[str] | None = None) -> dict[str, np.ndarra
     out = {}
     for name in layers:
         planes = []
-        for channel in LAYER_CHANNELS[name]:
+        for channel in LAYERS[name].channels:
             plane = pixels[_full_name(name, channel)].pixels
             if plane.shape != size:
                 raise ExrError(f"{path}: channel {name}.{channel} is {plane.shape[0]}x{plane.shape[1]}, "

@@ -13,6 +13,7 @@ import pyoidn
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from admc.common.buffers import BEAUTY
 from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
@@ -23,7 +24,7 @@ from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percen
 from admc.pipeline.render.tasks import view_space_normals
 from admc.pipeline.stages.evaluate import ReportFigures
 from admc.pipeline.stages.render import render_corpus
-from admc.stores.exr import BEAUTY, exr_layers, read_exr, read_image, write_exr
+from admc.stores.exr import exr_layers, read_exr, read_image, write_exr
 
 METRIC_KEYS = [m.key for m in METRICS]
 

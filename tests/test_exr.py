@@ -4,13 +4,13 @@ import OpenEXR
 import OpenImageIO as oiio
 import pytest
 
-from admc.stores.exr import (BEAUTY, LAYER_CHANNELS, ExrError, exr_layers, nonfinite_report, read_exr, read_image,
-                             write_exr)
+from admc.common.buffers import BEAUTY, LAYERS
+from admc.stores.exr import ExrError, exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 
-def make_layers(h=16, w=24, seed=0, names=tuple(LAYER_CHANNELS)):
+def make_layers(h=16, w=24, seed=0, names=tuple(LAYERS)):
     rng = np.random.default_rng(seed)
-    return {name: (rng.standard_normal((h, w, len(LAYER_CHANNELS[name]))) * 50).astype(np.float32)
+    return {name: (rng.standard_normal((h, w, len(LAYERS[name].channels))) * 50).astype(np.float32)
             for name in names}
 
 
@@ -26,7 +26,7 @@ def test_half_round_trip_equals_float16_cast(tmp_path):
     layers = make_layers()
     write_exr(tmp_path / "a.exr", layers, precision="half")
     back = read_exr(tmp_path / "a.exr")
-    assert sorted(back) == sorted(LAYER_CHANNELS)
+    assert sorted(back) == sorted(LAYERS)
     for name, array in layers.items():
         assert back[name].dtype == np.float32 and back[name].shape == array.shape
         np.testing.assert_array_equal(back[name], array.astype(np.float16).astype(np.float32))

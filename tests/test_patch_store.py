@@ -14,6 +14,7 @@ import pytest
 import zarr
 from zarr.storage import LocalStore
 
+from admc.common.buffers import sanitize
 from admc.model import transforms as T
 from admc.stores import patches as P
 
@@ -98,7 +99,7 @@ def test_attributes_suffice_to_invert_transforms(store):
     linear[0, 0] = [np.nan, np.inf, -3.0]
     albedo = rng.uniform(0, 1, (PATCH, PATCH, 3)).astype(np.float32)
     albedo[1, 1] = 0.0
-    clean, counts = T.sanitize(linear, "diffuse")
+    clean, counts = sanitize(linear, "diffuse")
     noisy16, _ = T.to_fp16(T.diffuse_forward(clean, albedo))
     normal = rng.uniform(-1, 1, (PATCH, PATCH, 3)).astype(np.float32)
     depth = rng.uniform(1, 9, (PATCH, PATCH, 1)).astype(np.float32)

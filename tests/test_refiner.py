@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from admc.common.buffers import sanitize
 from admc.model import transforms as tf
 from admc.model.inference.denoiser import FullImageDenoiser
 from admc.model.inference.oidn_base import oidn_bases
@@ -82,7 +83,7 @@ def test_tiling_stores_oidn_of_the_whole_image_per_row(store_with_bases):
     assert group.attrs["has_base"] and group.attrs["base"]["method"] == "oidn"
     y, x = (int(v) for v in group["origin"][row])
     spp = item["spp"]
-    layers = {name: tf.sanitize(a, name)[0]
+    layers = {name: sanitize(a, name)[0]
               for name, a in exr.read_exr(cfg.workdir_path("renders") / scene / f"spp{spp:04d}.exr").items()
               if name in ("diffuse", "specular", "albedo", "normal")}
     expected = tf.diffuse_forward(oidn_bases(layers)["diffuse"], layers["albedo"])[y:y + 32, x:x + 32]
@@ -129,7 +130,7 @@ def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn(store_with_b
     layers["coverage"] = np.ones_like(layers["coverage"])  # every pixel goes through the network
     branches = {b: refiner() for b in ("diffuse", "specular")}
     out = FullImageDenoiser(branches["diffuse"], branches["specular"], tile=24, dtype=inference_dtype)(layers)
-    clean = {name: tf.sanitize(layers[name], name)[0] for name in ("diffuse", "specular", "albedo", "normal")}
+    clean = {name: sanitize(layers[name], name)[0] for name in ("diffuse", "specular", "albedo", "normal")}
     bases = oidn_bases(clean)
     # the untrained correction is exactly zero in either precision (its last conv starts at zero) and
     # adding it to the float32 base stays float32: the log transform and its inverse round trip in float32

@@ -141,7 +141,8 @@ def test_eval_compares_several_checkpoints_in_one_table(pretrained):
 
 def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
     import numpy as np
-    from admc.stores.exr import BEAUTY, read_exr, write_exr
+    from admc.common.buffers import BEAUTY
+    from admc.stores.exr import read_exr, write_exr
 
     workdir, _ = pretrained
     weights = workdir / "train" / "pretrain" / "weights-fp16.pt"

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from admc.common.buffers import VARIANCE_MAX, sanitize
 from admc.model import transforms as T
 
 EXTREMES = [0.0, 1e-8, 1e-3, 0.5, 1.0, 7.0, 1e4, 65504.0, 7e4, 1e9, 3e38, -1e-8, -5.0, -1e9,
@@ -39,26 +40,6 @@ def _assert_storable(x16: np.ndarray, n_clamped: int) -> None:
     assert n_clamped == 0  # the log domain never needs the clamp
 
 
-def test_sanitize_counts_each_kind_and_applies_rule():
-    x = np.array([np.nan, np.inf, -np.inf, -2.0, 1e9, 3.0], dtype=np.float32)
-    clean, counts = T.sanitize(x, "ref_diffuse")
-    np.testing.assert_array_equal(clean, [0.0, T.RADIANCE_MAX, 0.0, 0.0, T.RADIANCE_MAX, 3.0])
-    assert counts == {"nan": 1, "posinf": 1, "neginf": 1, "below_min": 1, "above_max": 1}
-
-    n, counts = T.sanitize(np.array([np.nan, -np.inf, np.inf, -3.0, 0.25], np.float32), "normal")
-    np.testing.assert_array_equal(n, [0.0, -1.0, 1.0, -1.0, 0.25])
-    assert counts == {"nan": 1, "posinf": 1, "neginf": 1, "below_min": 1, "above_max": 0}
-
-    depth, counts = T.sanitize(np.array([np.nan, np.inf, -1.0, 12.5], np.float32), "depth")
-    np.testing.assert_array_equal(depth, [0.0, 0.0, 0.0, 12.5])
-    assert counts["posinf"] == 1 and counts["above_max"] == 0
-
-
-def test_sanitize_refuses_unknown_buffer():
-    with pytest.raises(ValueError, match="'variance'"):
-        T.sanitize(np.zeros(3), "variance")
-
-
 def test_forward_refuses_unsanitized_input():
     with pytest.raises(ValueError, match=r"diffuse has 1 non-finite.*sanitize"):
         T.diffuse_forward(np.array([np.nan, 1.0]), np.ones(2))
@@ -76,8 +57,8 @@ def test_diffuse_known_values_zero_and_white_albedo():
 @settings(max_examples=150, deadline=None)
 @given(x=radiance, a=albedo_values)
 def test_diffuse_roundtrip_through_fp16(x, a):
-    clean, _ = T.sanitize(x, "diffuse")
-    alb, _ = T.sanitize(a, "albedo")
+    clean, _ = sanitize(x, "diffuse")
+    alb, _ = sanitize(a, "albedo")
     d = T.diffuse_forward(clean, alb)
     d16, n_clamped = T.to_fp16(d)
     _assert_storable(d16, n_clamped)
@@ -91,7 +72,7 @@ def test_diffuse_roundtrip_through_fp16(x, a):
 @settings(max_examples=150, deadline=None)
 @given(x=radiance)
 def test_specular_roundtrip_through_fp16(x):
-    clean, _ = T.sanitize(x, "specular")
+    clean, _ = sanitize(x, "specular")
     s16, n_clamped = T.to_fp16(T.specular_forward(clean))
     _assert_storable(s16, n_clamped)
     back = T.specular_inverse(s16.astype(np.float32)).astype(np.float64)
@@ -203,6 +184,6 @@ def test_noise_map_and_variance_sanitizing_stay_finite_on_hostile_values():
     x = np.array([[[np.nan, np.inf, 0.0], [1e30, -1.0, 0.0]]], dtype=np.float32)
     level = T.specular_noise(var, x)
     assert np.isfinite(level).all() and (level >= 0).all()
-    clean, counts = T.sanitize_variance(var)
+    clean, counts = sanitize(var, "specular_var")
     assert counts == {"nan": 1, "posinf": 1, "neginf": 1, "below_min": 1, "above_max": 1}
-    assert clean.tolist() == [[[0.0, T.NOISE_VARIANCE_MAX, 0.0], [0.0, T.NOISE_VARIANCE_MAX, 0.5]]]
+    assert clean.tolist() == [[[0.0, VARIANCE_MAX, 0.0], [0.0, VARIANCE_MAX, 0.5]]]

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from admc.common.buffers import DENOISER_LAYERS, LAYERS, sanitize
 from admc.common.diff import differing_keys
 from admc.errors import AdmcError
 
@@ -34,8 +35,6 @@ from ..transforms import (
     diffuse_inverse,
     diffuse_noise,
     features,
-    sanitize,
-    sanitize_variance,
     specular_forward,
     specular_inverse,
     specular_noise,
@@ -46,8 +45,6 @@ from .oidn_base import oidn_bases
 from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
-VARIANCE_LAYERS = {"diffuse_var": 3, "specular_var": 3}
-"""Optional: what weights with model.noise_input read (the variance of each pixel's mean, per branch)."""
 MISSING_DEPTH = 1.0
 """Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
 environment pixels (no geometry information), and coverage 1."""
@@ -356,7 +353,7 @@ def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarr
 def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
                     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
     """Check shapes, fill a missing depth/coverage (MISSING_DEPTH, 1) and sanitize every layer, and the
-    `variances` (names of VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
+    `variances` (names of buffers.VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
 
     Returns the clean float32 layers and, per layer with any repair, the nonzero counts of NaN,
     +-Inf and out-of-range values (negative radiance or albedo, radiance above RADIANCE_MAX, ...).
@@ -364,28 +361,21 @@ def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = 
     missing = [name for name in REQUIRED_LAYERS if name not in layers]
     if missing:
         raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)} (has {', '.join(sorted(layers))})")
-    channels = {"diffuse": 3, "specular": 3, "albedo": 3, "normal": 3, "depth": 1, "coverage": 1}
-    shapes = {**channels, **{name: VARIANCE_LAYERS[name] for name in variances}}
     size = np.shape(layers["diffuse"])[:2]
-    for name, array in layers.items():
-        if name in shapes and np.shape(array) != (*size, shapes[name]):
-            raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(array)}, "
-                             f"expected {(*size, shapes[name])} to match diffuse")
+    for name in (*DENOISER_LAYERS, *variances):
+        expected = (*size, len(LAYERS[name].channels))
+        if name in layers and np.shape(layers[name]) != expected:
+            raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(layers[name])}, "
+                             f"expected {expected} to match diffuse")
     if size[0] < 1 or size[1] < 1:
         raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
     filled = dict(layers)
     filled.setdefault("depth", np.full((*size, 1), MISSING_DEPTH, dtype=np.float32))
     filled.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
     clean, report = {}, {}
-    for name in channels:
+    for name in (*DENOISER_LAYERS, *variances):
         if name in filled:
             clean[name], counts = sanitize(filled[name], name)
-            nonzero = {kind: n for kind, n in counts.items() if n}
-            if nonzero:
-                report[name] = nonzero
-    for name in variances:
-        if name in filled:
-            clean[name], counts = sanitize_variance(filled[name])
             nonzero = {kind: n for kind, n in counts.items() if n}
             if nonzero:
                 report[name] = nonzero

@@ -29,7 +29,7 @@ def _contiguous(image: np.ndarray) -> np.ndarray:
 
 def oidn_bases(clean: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """{"diffuse": ..., ["specular": ...]} linear HDR (H, W, 3) float32 from sanitised layers
-    (transforms.sanitize: finite, radiance >= 0, albedo in [0, 1], normals in [-1, 1])."""
+    (admc.common.buffers.sanitize: finite, radiance >= 0, albedo in [0, 1], normals in [-1, 1])."""
     import pyoidn
 
     guides = [_contiguous(clean["albedo"]), _contiguous(clean["normal"])]

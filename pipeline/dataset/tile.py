@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.common.buffers import DENOISER_LAYERS, VARIANCE_LAYERS, sanitize
 from admc.model import transforms as tf
 from admc.model.inference.oidn_base import describe as describe_oidn, oidn_bases
 from admc.pipeline.render.tasks import EXR_NAME
@@ -70,14 +71,11 @@ def choose_crops(score: np.ndarray, n: int, patch: int, candidates_per_crop: int
 def _clean(layers: dict[str, np.ndarray], counts: dict, prefix: str) -> dict[str, np.ndarray]:
     """Sanitize every buffer the store needs; count what was replaced under prefix/<layer>."""
     out = {}
-    for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage"):
+    for name in (*DENOISER_LAYERS, *VARIANCE_LAYERS):
         if name in layers:
-            out[name], c = tf.sanitize(layers[name], name)
+            out[name], c = sanitize(layers[name], name)
             if any(c.values()):
                 counts[f"{prefix}/{name}"] = c
-    for name in ("diffuse_var", "specular_var"):
-        if name in layers:
-            out[name] = np.nan_to_num(layers[name], nan=0.0, posinf=tf.RADIANCE_MAX, neginf=0.0)
     return out
 
 

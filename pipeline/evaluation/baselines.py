@@ -16,6 +16,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from admc.common.buffers import BEAUTY, sanitize
 from admc.pipeline.render.variants import available_variants
 
 OIDN_QUALITIES = ("high", "balanced", "fast")
@@ -72,26 +73,17 @@ class NoisyInput:
         pass
 
 
-def _clean(image: np.ndarray, low: float, high: float) -> np.ndarray:
-    """Contiguous float32 with NaN/inf set to 0 and values clipped to what OIDN documents as valid."""
-    image = np.asarray(image, dtype=np.float32)
-    image = np.where(np.isfinite(image), image, np.float32(0.0))
-    return np.ascontiguousarray(np.clip(image, low, high))
-
-
 def _guided_inputs(layers: dict[str, np.ndarray], who: str) -> tuple[list[np.ndarray], int]:
-    """([colour, albedo, normal] cleaned for an albedo+normal guided denoiser, colour values replaced).
+    """([colour, albedo, normal] sanitised for an albedo+normal guided denoiser, colour values replaced).
 
-    Colour: NaN/inf and negatives -> 0 (HDR modes expect non-negative radiance, and a NaN spreads over
-    the whole receptive field); albedo clipped to [0, 1], normals to [-1, 1]."""
-    raw = noisy_color(layers)
-    replaced = int(np.count_nonzero(~np.isfinite(raw)))
-    inputs = [_clean(raw, 0.0, np.inf)]
-    for name, low in (("albedo", 0.0), ("normal", -1.0)):
+    The colour is the beauty (diffuse + specular); each buffer follows its rule in admc.common.buffers
+    (HDR modes expect non-negative radiance, and a NaN spreads over the whole receptive field)."""
+    colour, counts = sanitize(noisy_color(layers), BEAUTY)
+    for name in ("albedo", "normal"):
         if name not in layers:
             raise KeyError(f"{who} needs the {name!r} layer (have {', '.join(sorted(layers))})")
-        inputs.append(_clean(layers[name], low, 1.0))
-    return inputs, replaced
+    replaced = counts["nan"] + counts["posinf"] + counts["neginf"]
+    return [colour, sanitize(layers["albedo"], "albedo")[0], sanitize(layers["normal"], "normal")[0]], replaced
 
 
 class OidnDenoiser:

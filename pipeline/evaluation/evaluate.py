@@ -23,13 +23,14 @@ from pathlib import Path
 import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
+from admc.common.buffers import BEAUTY
 from admc.common.metrics import count_nonfinite, score
 from admc.pipeline.evaluation.baselines import Denoiser, noisy_color, time_denoiser
 from admc.pipeline.evaluation.inputs import by_scene, read_reference
 from admc.pipeline.evaluation.outputs import write_outputs
 from admc.pipeline.evaluation.records import (PATH_TRACER, EvalError, EvalResult, ImageRecord, SceneImages,
                                               ScoredImage, TestImage, aggregate)
-from admc.stores.exr import BEAUTY, read_exr, write_exr
+from admc.stores.exr import read_exr, write_exr
 
 RESERVED_NAMES = frozenset({PATH_TRACER, "input", "reference"})
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")

@@ -43,21 +43,19 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-INTEGRATOR_NAME = "admc_split"
+from admc.common.buffers import LAYERS
+from admc.common.layout import BRANCHES
 
-RADIANCE_BUFFERS = ("diffuse", "specular")
-_RGB = ("R", "G", "B")
-_XYZ = ("X", "Y", "Z")
+INTEGRATOR_NAME = "admc_split"
 
 
 def aov_layout(split: bool) -> list[tuple[str, tuple[str, ...]]]:
     """Per-sample AOVs in the order the integrator writes them: (buffer name, channel suffixes)."""
-    radiance = RADIANCE_BUFFERS if split else RADIANCE_BUFFERS[:1]
+    radiance = BRANCHES if split else BRANCHES[:1]
     return (
-        [(name, _RGB) for name in radiance]
-        + [("albedo", _RGB), ("normal", _XYZ), ("depth", ("Z",)), ("coverage", ("A",))]
-        + [(f"{name}_m2", _RGB) for name in radiance]
-        + [("delta_coverage", ("A",))]
+        [(name, LAYERS[name].channels) for name in (*radiance, "albedo", "normal", "depth", "coverage")]
+        + [(f"{name}_m2", LAYERS[name].channels) for name in radiance]
+        + [("delta_coverage", LAYERS["coverage"].channels)]
     )
 
 
@@ -224,7 +222,7 @@ channel of every radiance buffer (float32 accumulation leaves about 2e-4 on iden
 def _samples_disagree(buffers: dict[str, np.ndarray], spp: int) -> np.ndarray:
     """(H, W, 1): the pixel's samples differ beyond float rounding in some radiance channel."""
     spread = [buffers[f"{name}_var"] * spp > np.square(SAMPLES_AGREE_RTOL * buffers[name])
-              for name in RADIANCE_BUFFERS if name in buffers]
+              for name in BRANCHES if name in buffers]
     return np.any(np.concatenate(spread, axis=-1), axis=-1, keepdims=True)
 
 
@@ -300,7 +298,7 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         offset += len(channels)
 
     out = {}
-    for name in RADIANCE_BUFFERS if split else RADIANCE_BUFFERS[:1]:
+    for name in BRANCHES if split else BRANCHES[:1]:
         m1 = planes[name]
         out[name] = m1
         out[f"{name}_var"] = np.maximum(planes[f"{name}_m2"] - np.square(m1), 0.0) / spp

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.common import buffers
 from admc.common.layout import FP16_MAX
 from admc.pipeline.config import Config
 from admc.pipeline.engine.cache import Task, code_version
@@ -26,7 +27,7 @@ from admc.stores import exr
 
 EXR_NAME = "render.exr"
 SIDECAR_NAME = "render.json"
-RENDER_CODE = code_version(integrator, scenes, exr, sys.modules[__name__])
+RENDER_CODE = code_version(integrator, scenes, buffers, exr, sys.modules[__name__])
 
 
 def derive_seed(base_seed: int, scene_id: str, spp: int, reference: bool) -> int:

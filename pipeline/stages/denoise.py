@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from admc.common.buffers import BEAUTY, DENOISER_LAYERS, VARIANCE_LAYERS
 from admc.errors import AdmcError
-from admc.model.inference.denoiser import MISSING_DEPTH, VARIANCE_LAYERS, DenoiseResult
-from admc.stores.exr import BEAUTY, exr_layers, nonfinite_report, read_exr, read_image, write_exr
+from admc.model.inference.denoiser import MISSING_DEPTH, DenoiseResult
+from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
             "specular": ".specular.exr", "depth": ".depth.exr"}
@@ -84,8 +85,7 @@ def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
                                 f"{', '.join(present) or 'no admc layers'}); expected diffuse.R/G/B, "
                                 f"albedo.R/G/B, normal.X/Y/Z and optionally specular, depth.Z, coverage.A (or, as "
                                 f"separate files, {path.stem}.alb.exr and {path.stem}.nrm.exr beside it)")
-    wanted = [name for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage", *VARIANCE_LAYERS)
-              if name in present]
+    wanted = [name for name in (*DENOISER_LAYERS, *VARIANCE_LAYERS) if name in present]
     layers = read_exr(path, wanted)
     notes = []
     if "specular" not in layers:
