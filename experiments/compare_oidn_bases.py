@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyoidn
 
+from admc.common import oidn
 from admc.common.buffers import sanitize
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.oidn_base import QUALITY, oidn_bases
@@ -25,8 +25,7 @@ from admc.stores.exr import read_exr
 
 def combined(layers: dict) -> np.ndarray:
     color = layers["diffuse"] + layers.get("specular", 0.0)
-    return pyoidn.denoise(np.ascontiguousarray(color), np.ascontiguousarray(layers["albedo"]),
-                          np.ascontiguousarray(layers["normal"]), hdr=True, quality=QUALITY)
+    return oidn.denoise(color, layers["albedo"], layers["normal"], quality=QUALITY)
 
 
 def main() -> None:

@@ -17,6 +17,7 @@ from importlib import resources
 from pathlib import Path
 
 from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
+from admc.common.oidn import QUALITIES as OIDN_QUALITIES
 from admc.errors import AdmcError
 from admc.model.nets.critic import DOWNSAMPLING
 from admc.model.nets.settings import ModelSettings
@@ -153,8 +154,8 @@ class EvalConfig:
 
         unknown = [name for name in self.ood_families if name not in FAMILIES]
         _require(not unknown, "eval.ood_families", f"unknown families {unknown}; known: {', '.join(sorted(FAMILIES))}")
-        _require(self.oidn_quality in ("fast", "balanced", "high"), "eval.oidn_quality",
-                 f"must be fast, balanced or high, got {self.oidn_quality!r}")
+        _require(self.oidn_quality in OIDN_QUALITIES, "eval.oidn_quality",
+                 f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}")
         _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")
         _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
         _require(self.warmup >= 0, "eval.warmup", "must be >= 0")

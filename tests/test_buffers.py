@@ -1,10 +1,18 @@
-"""The buffer schema: one definition of every layer and one sanitiser. Real EXR files, real arrays."""
+"""The buffer schema and the OIDN adapter: one definition of every layer, one sanitiser, one OIDN call.
+
+Real EXR files, real pyoidn, real arrays. The adapter is compared with pyoidn called directly on the
+same bits: the same library call on the same input is deterministic, so equality is exact.
+"""
 import numpy as np
 import OpenEXR
+import pyoidn
 import pytest
 
+from admc.common import oidn
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, LAYERS, RADIANCE_MAX, VARIANCE_MAX, sanitize
+from admc.model.inference.oidn_base import QUALITY, oidn_bases
 from admc.model.transforms import transform_spec
+from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.render.integrator import aov_layout
 from admc.stores.exr import ExrError, nonfinite_report, read_exr, write_exr
 
@@ -87,3 +95,57 @@ def test_nonfinite_report_flags_negatives_where_the_schema_forbids_them():
     report = nonfinite_report({name: np.full((2, 2, len(layer.channels)), -0.5, np.float32)
                                for name, layer in LAYERS.items()})
     assert set(report) == set(LAYERS) - {"normal"}
+
+
+def _image(rng, h=24, w=20):
+    normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return {"diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
+            "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
+            "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32), "normal": normal}
+
+
+@pytest.mark.parametrize("quality", oidn.QUALITIES)
+def test_oidn_adapter_passes_its_quality_to_pyoidn(quality):
+    layers = _image(np.random.default_rng(1))
+    guided = oidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], quality=quality)
+    np.testing.assert_array_equal(
+        guided, pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality=quality))
+    alone = oidn.denoise(layers["specular"], quality=quality)
+    np.testing.assert_array_equal(alone, pyoidn.denoise(layers["specular"], hdr=True, quality=quality))
+
+
+def test_oidn_qualities_differ_and_unknown_ones_are_refused():
+    """Without the first, the pass-through test could not tell a dropped quality from a kept one."""
+    layers = _image(np.random.default_rng(2))
+    fast = oidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], quality="fast")
+    high = oidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], quality="high")
+    assert not np.array_equal(fast, high)
+    with pytest.raises(ValueError, match="OIDN quality must be one of high, balanced, fast, got 'default'"):
+        oidn.denoise(layers["diffuse"], quality="default")
+    with pytest.raises(ValueError, match="got 'best'"):
+        OidnDenoiser(quality="best")
+
+
+@pytest.mark.parametrize("quality", ["fast", "high"])
+def test_the_oidn_baseline_runs_at_its_quality_on_the_sanitised_beauty(quality):
+    layers = _image(np.random.default_rng(3))
+    layers["diffuse"][0, 0] = [NAN, INF, -1.0]
+    layers["specular"][0, 0, 2] = 0.25
+    layers["albedo"][1, 1] = [NAN, 2.0, -0.5]
+    image = OidnDenoiser(quality=quality).denoise(layers)
+    colour = layers["diffuse"] + layers["specular"]
+    colour[0, 0] = [0.0, 0.0, 0.0]  # NaN, +Inf and the negative sum become 0 in the beauty
+    albedo = layers["albedo"].copy()
+    albedo[1, 1] = [0.0, 1.0, 0.0]
+    np.testing.assert_array_equal(image, pyoidn.denoise(colour, albedo, layers["normal"], hdr=True, quality=quality))
+
+
+def test_the_refiners_bases_are_oidn_at_the_quality_they_were_trained_with():
+    assert QUALITY == "high"
+    layers = _image(np.random.default_rng(4))
+    bases = oidn_bases(layers)
+    diffuse = pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality="high")
+    specular = pyoidn.denoise(layers["specular"], hdr=True, quality="high")
+    np.testing.assert_array_equal(bases["diffuse"], np.maximum(diffuse, 0.0))
+    np.testing.assert_array_equal(bases["specular"], np.maximum(specular, 0.0))

@@ -70,10 +70,11 @@ def test_eval_optix_on_without_cuda_is_a_clear_error_before_rendering(tmp_path, 
     assert not (tmp_path / "renders").exists(), "the error must come before any render work"
 
 
-def test_eval_optix_off_is_stated(tmp_path, variant):
-    outcome = run_eval(load_config(None, overrides(tmp_path) + ["eval.optix='off'"]), progress=False)
+def test_eval_optix_off_is_stated_and_oidn_runs_at_the_configured_quality(tmp_path, variant):
+    cfg = load_config(None, overrides(tmp_path) + ["eval.optix='off'", "eval.oidn_quality='fast'"])
+    outcome = run_eval(cfg, progress=False)
     assert outcome.result.not_run == {"optix": "turned off (eval.optix = off)"}
-    assert {row.method for row in outcome.result.table} == {"noisy", "oidn"}
+    assert {row.method for row in outcome.result.table} == {"noisy", "oidn-fast"}
 
 
 def test_empty_test_split_is_a_clear_error(tmp_path, variant):

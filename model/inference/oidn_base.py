@@ -15,7 +15,11 @@ from importlib.metadata import version
 
 import numpy as np
 
+from admc.common import oidn
+
 QUALITY = "high"
+"""The bases' quality, fixed: a refiner must see bases of the quality it was trained on, whatever
+quality the evaluation's OIDN baseline runs at (eval.oidn_quality)."""
 
 
 def describe() -> dict:
@@ -23,19 +27,12 @@ def describe() -> dict:
     return {"method": "oidn", "quality": QUALITY, "per_branch": True, "pyoidn": version("pyoidn")}
 
 
-def _contiguous(image: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(image, dtype=np.float32)
-
-
 def oidn_bases(clean: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """{"diffuse": ..., ["specular": ...]} linear HDR (H, W, 3) float32 from sanitised layers
     (admc.common.buffers.sanitize: finite, radiance >= 0, albedo in [0, 1], normals in [-1, 1])."""
-    import pyoidn
-
-    guides = [_contiguous(clean["albedo"]), _contiguous(clean["normal"])]
-    bases = {"diffuse": pyoidn.denoise(_contiguous(clean["diffuse"]), *guides, hdr=True, quality=QUALITY)}
+    bases = {"diffuse": oidn.denoise(clean["diffuse"], clean["albedo"], clean["normal"], quality=QUALITY)}
     if "specular" in clean:
-        bases["specular"] = pyoidn.denoise(_contiguous(clean["specular"]), hdr=True, quality=QUALITY)
+        bases["specular"] = oidn.denoise(clean["specular"], quality=QUALITY)
     # OIDN's output is finite for finite input; negatives (ringing) are not radiance.
     return {branch: np.clip(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
             for branch, image in bases.items()}

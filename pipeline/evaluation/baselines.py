@@ -16,10 +16,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from admc.common import oidn
 from admc.common.buffers import BEAUTY, sanitize
 from admc.pipeline.render.variants import available_variants
-
-OIDN_QUALITIES = ("high", "balanced", "fast")
 
 
 @runtime_checkable
@@ -99,10 +98,7 @@ class OidnDenoiser:
     def __init__(self, quality: str = "high", device: str = "cpu", name: str | None = None) -> None:
         import pyoidn
 
-        if quality not in OIDN_QUALITIES:
-            raise ValueError(f"OIDN quality must be one of {', '.join(OIDN_QUALITIES)}, got {quality!r}")
-        self._pyoidn = pyoidn
-        self.quality = quality
+        self.quality = oidn.check_quality(quality)
         self.name = name or ("oidn" if quality == "high" else f"oidn-{quality}")
         self.last_sanitized = 0
         self._torch_device = None
@@ -126,11 +122,11 @@ class OidnDenoiser:
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
         inputs, self.last_sanitized = _guided_inputs(layers, "OIDN")
         if self._torch_device is None:
-            return self._pyoidn.denoise(*inputs, hdr=True, quality=self.quality)
+            return oidn.denoise(*inputs, quality=self.quality)
         import torch
 
         tensors = [torch.from_numpy(a).to(self._torch_device) for a in inputs]
-        return self._pyoidn.denoise(*tensors, hdr=True, quality=self.quality).cpu().numpy()
+        return oidn.denoise(*tensors, quality=self.quality).cpu().numpy()
 
     def synchronize(self) -> None:
         if self._torch_device is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import admc
-from admc.common import buffers
+from admc.common import buffers, oidn
 from admc.model import transforms
 from admc.model.inference import oidn_base
 from admc.model.nets.critic import DOWNSAMPLING
@@ -17,7 +17,7 @@ from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.pipeline.stages.corpus import StageError, StageResult, open_cache, read_sidecars, run_corpus, skipped_files
 from admc.stores import patches
 
-TILE_CODE = code_version(tile, buffers, transforms, oidn_base, patches)
+TILE_CODE = code_version(tile, buffers, transforms, oidn_base, oidn, patches)
 
 
 def store_attributes(cfg: Config) -> dict:
