@@ -71,3 +71,29 @@ def build_tiny_store(workdir, size: int, patch: int, extra: list[str] = ()):
 
     cfg = load_config(None, [*tiny_store_overrides(workdir, size, patch), *extra])
     return build_dataset(cfg, progress=False).store
+
+
+def noise_input_weights(path, shipped: str = "admc-small-pretrained.pt", seed: int = 0):
+    """Weights with model.noise_input, written to `path`: the shipped file `shipped` widened as fine-tuning
+    widens it, then given random weights on the noise channel as large as the other channels' (zero ones
+    would hide a noise map that went missing or to the wrong place)."""
+    import dataclasses
+
+    import torch
+
+    from admc.model.nets.settings import ModelSettings
+    from admc.model.training.resume import with_noise_input
+    from admc.pipeline.weights import WEIGHTS_DIR
+    from admc.stores.checkpoints import export_weights, load_weights
+
+    saved = load_weights(WEIGHTS_DIR / shipped)
+    model = dataclasses.replace(ModelSettings.from_saved(saved["metadata"]["model"]), noise_input=True)
+    generator = torch.Generator().manual_seed(seed)
+    branches = {}
+    for branch, nets in saved["branches"].items():
+        state = with_noise_input({k: v.float() for k, v in nets["generator"].items()}, model)
+        first = state["encoder.layers.0.weight"]
+        first[:, 7] = torch.randn(first[:, 7].shape, generator=generator) * float(first[:, :7].std())
+        branches[branch] = {**nets, "generator": state}
+    export_weights(path, branches, {**saved["metadata"], "model": dataclasses.asdict(model)})
+    return path

@@ -74,3 +74,29 @@ def test_what_an_engine_cannot_do_is_refused(engine, options, message):
 def test_auto_is_openvino_on_a_cpu():
     denoiser = load_denoiser(SHIPPED, engine="auto")
     assert denoiser.engine == "openvino" and isinstance(denoiser.generators["specular"], OnnxGenerator)
+
+
+@pytest.mark.parametrize("engine", ["onnxruntime", "openvino"])
+@pytest.mark.parametrize("shipped", ["admc-small-pretrained.pt", "admc-small-refiner.pt"])
+def test_float32_engines_give_the_torch_result_for_noise_input_weights(engine, shipped, tmp_path):
+    """model.noise_input weights: the graph takes the noise map as an input of its own; tiled, with the
+    ensemble and the dark pass, each engine gives torch's result within the same float32 tolerance."""
+    from conftest import noise_input_weights
+    from test_inference import with_variance
+
+    weights = noise_input_weights(tmp_path / "noise.pt", shipped)
+    layers = with_variance(dark_layers())
+    options = dict(tile=20, dtype=torch.float32, dark_pass=True, ensemble=2)
+    reference = load_denoiser(weights, **options)(layers)
+    denoiser = load_denoiser(weights, engine=engine, **options)
+    assert all(g.noise_input for g in denoiser.generators.values())
+    result = denoiser(layers)
+    assert result.dark_share > 0 and result.tiles == reference.tiles
+    error = np.abs(log_branches(result, layers) - log_branches(reference, layers))
+    assert error.max() <= FLOAT32_LOG_TOLERANCE
+    # the map reaches the graph where torch reads it: other variances move torch's output beyond twice the
+    # tolerance's worst case, and the engine's with it, to within the tolerance
+    quieter = {**layers, "diffuse_var": layers["diffuse_var"] * 1e-6}
+    moved = log_branches(load_denoiser(weights, **options)(quieter), layers)
+    assert np.abs(moved - log_branches(reference, layers)).max() > 2 * FLOAT32_LOG_TOLERANCE
+    assert np.abs(log_branches(denoiser(quieter), layers) - moved).max() <= FLOAT32_LOG_TOLERANCE

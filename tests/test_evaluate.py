@@ -449,3 +449,27 @@ def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
     assert "relMSE − floor" in md and "expected relMSE against the converged image" in md
     doc = json.loads((out / "results.json").read_text())
     assert doc["reference_floor"]["per_scene"] == pytest.approx(floors, rel=1e-12)
+
+
+def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_path):
+    """eval hands the renders' variance layers to model.noise_input weights; a test image without them
+    is named with the layers it lacks (an EvalError: one line from `admc-pipe eval`, no traceback)."""
+    from conftest import noise_input_weights
+
+    from admc.model.inference.denoiser import load_denoiser
+
+    weights = noise_input_weights(tmp_path / "noise.pt")
+    denoiser = load_denoiser(weights, dtype=None)
+    result = evaluate(find_test_images(renders), [NoisyInput(), denoiser], tmp_path / "out", progress=False,
+                      repeats=1, warmup=0)  # the renders carry diffuse_var and specular_var
+    assert all(math.isfinite(r.relmse) for r in result.records)
+    scene = sorted(renders.iterdir())[0]
+    copy = tmp_path / "renders" / scene.name
+    shutil.copytree(scene, copy)
+    layers = read_exr(copy / "spp0002.exr")
+    layers = {name: layer for name, layer in layers.items() if not name.endswith("_var")}
+    write_exr(copy / "spp0002.exr", layers)
+    with pytest.raises(EvalError, match=rf"{copy / 'spp0002.exr'}: lacks layer\(s\) diffuse_var(, specular_var)?, "
+                                        rf"which admc's weights {weights} read"):
+        evaluate(find_test_images(tmp_path / "renders"), [NoisyInput(), denoiser], tmp_path / "out2",
+                 progress=False, repeats=1, warmup=0)

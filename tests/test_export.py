@@ -66,3 +66,39 @@ def test_export_needs_a_folder_and_real_weights(tmp_path):
     notes.write_text("not weights")
     refused(run("export", str(notes), "-o", str(tmp_path / "out")), f"{notes}: not a readable torch file")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("shipped", ["admc-small-pretrained.pt", "admc-small-refiner.pt"])
+def test_noise_input_weights_export_the_noise_map_as_an_input_of_its_own(tmp_path, shipped):
+    from conftest import noise_input_weights
+
+    from admc.model.transforms import NOISE_STD_UNIT
+
+    weights = noise_input_weights(tmp_path / "noise.pt", shipped)
+    out = run("export", str(weights), "-o", str(tmp_path / "onnx"))  # the command, as a user runs it
+    assert out.returncode == 0, out.stderr
+    manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
+    assert manifest["noise_input"] is True and manifest["noise_std_unit"] == NOISE_STD_UNIT
+    assert "noise" in manifest["inputs"] and len(manifest["inputs"]["features"]) == 7
+    generators = load_denoiser(weights, dtype=torch.float32).generators
+    for branch, generator in generators.items():
+        session = onnxruntime.InferenceSession(str(tmp_path / "onnx" / manifest["graphs"][branch]),
+                                               providers=["CPUExecutionProvider"])
+        names = ["noisy", "features", "noise"] + (["base"] if generator.config.refines else [])
+        assert [i.name for i in session.get_inputs()] == names
+        inputs = log_inputs(generator, 45, 70)
+        inputs = {"noisy": inputs["noisy"], "features": inputs["features"],
+                  "noise": np.random.default_rng(1).random((1, 1, 45, 70), dtype=np.float32),
+                  **({"base": inputs["base"]} if "base" in inputs else {})}
+        with torch.no_grad():
+            expected = generator(torch.from_numpy(inputs["noisy"]),
+                                 torch.from_numpy(np.concatenate([inputs["features"], inputs["noise"]], axis=1)),
+                                 torch.from_numpy(inputs["base"]) if "base" in inputs else None).numpy()
+        got = session.run(None, inputs)[0]
+        assert np.abs(got - expected).max() <= FLOAT32_LOG_TOLERANCE, branch
+
+
+def test_weights_without_the_noise_input_export_as_before(tmp_path):
+    export_onnx(WEIGHTS_DIR / "admc-small-pretrained.pt", tmp_path / "onnx")
+    manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
+    assert not {"noise_input", "noise_std_unit"} & set(manifest) and "noise" not in manifest["inputs"]

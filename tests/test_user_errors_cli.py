@@ -231,3 +231,32 @@ def test_a_damaged_render_sidecar_is_rendered_again(tiny_workdir, tmp_path):
     assert "(1 rendered now" in out.stdout
     rendered, before = json.loads(sidecar.read_text()), json.loads(whole)
     assert (rendered["scene_id"], rendered["spp"]) == (before["scene_id"], before["spp"])
+
+
+def test_noise_input_weights_name_the_variance_layer_an_input_lacks(tmp_path):
+    import numpy as np
+    from conftest import noise_input_weights
+
+    from admc.stores.exr import read_exr, write_exr
+
+    weights = noise_input_weights(tmp_path / "noise.pt")
+    frame = _oidn_style_input(tmp_path)  # OIDN-style files carry no variance
+    out = run("denoise", str(frame), "--weights", str(weights))
+    refused(out, f"{frame}: lacks layer(s) diffuse_var, which the weights {weights} read",
+            "--set model.noise_input=false")
+    assert not list(tmp_path.glob("*denoised*"))
+
+    rng = np.random.default_rng(0)
+    layers = {name: rng.uniform(0, 1, (8, 8, 3)).astype(np.float32)
+              for name in ("diffuse", "specular", "albedo", "normal", "diffuse_var")}
+    render = tmp_path / "render.exr"
+    write_exr(render, layers, precision="float")
+    refused(run("denoise", str(render), "--weights", str(weights)),
+            f"{render}: lacks layer(s) specular_var, which the weights {weights} read")
+    layers["specular_var"] = layers["diffuse_var"]
+    write_exr(render, layers, precision="float")
+    for engine in ("torch", "onnxruntime", "openvino"):
+        target = tmp_path / f"render.{engine}.exr"
+        out = run("denoise", str(render), "--weights", str(weights), "--engine", engine, "-o", str(target))
+        assert out.returncode == 0, out.stderr
+        assert np.isfinite(read_exr(target)["diffuse"]).all()

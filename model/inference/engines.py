@@ -44,10 +44,12 @@ def check_engine(engine: str, device: torch.device, dtype: torch.dtype) -> None:
 
 class OnnxGenerator:
     """An exported generator graph under ONNX Runtime or OpenVINO, called as `(noisy, features[, base])`
-    with float tensors on the CPU; returns the float32 output tensor."""
+    with float tensors on the CPU; returns the float32 output tensor. With `noise_input` the features'
+    last channel is the noise map, which the graph takes as an input of its own (export.input_names)."""
 
-    def __init__(self, graph: bytes, engine: str, dtype: torch.dtype) -> None:
+    def __init__(self, graph: bytes, engine: str, dtype: torch.dtype, noise_input: bool = False) -> None:
         self.engine = engine
+        self.noise_input = noise_input
         if engine == "onnxruntime":
             import onnxruntime
 
@@ -66,6 +68,9 @@ class OnnxGenerator:
             self._request = self._compiled.create_infer_request()
 
     def __call__(self, *inputs: Tensor) -> Tensor:
+        if self.noise_input:  # (noisy, features + noise[, base]) -> (noisy, features, noise[, base])
+            noisy, features, *base = inputs
+            inputs = (noisy, features[:, :-1], features[:, -1:], *base)
         arrays = [np.ascontiguousarray(t.detach().float().cpu().numpy()) for t in inputs]
         if self.engine == "onnxruntime":
             out = self._session.run(None, dict(zip(self._names, arrays)))[0]
@@ -82,4 +87,6 @@ def default_precision(engine: str, device: torch.device) -> torch.dtype:
 
 def onnx_generators(generators: dict[str, nn.Module], engine: str, dtype: torch.dtype) -> dict[str, OnnxGenerator]:
     """Each generator exported to ONNX and loaded into `engine`, in memory (no file is written)."""
-    return {branch: OnnxGenerator(generator_graph(generator), engine, dtype) for branch, generator in generators.items()}
+    return {branch: OnnxGenerator(generator_graph(generator), engine, dtype,
+                                  getattr(getattr(generator, "config", None), "noise_input", False))
+            for branch, generator in generators.items()}

@@ -1,7 +1,8 @@
 """Each branch's generator as an ONNX graph, and a JSON of what runs around it: admc without Python.
 
 A graph is one branch's `Generator.forward`, darkness gate and input skip included, with dynamic
-height and width: inputs `noisy` (1, 3, H, W) in the branch's log domain, `features` (1, 7, H, W) and, for
+height and width: inputs `noisy` (1, 3, H, W) in the branch's log domain, `features` (1, 7, H, W), for
+weights with model.noise_input `noise` (1, 1, H, W: the branch's noise map, transforms.noise_forward) and, for
 a refiner, `base` (1, 3, H, W: OIDN's output of the branch, same log domain); output `denoised`
 (1, 3, H, W), log domain. Everything else (sanitising, the forward and inverse transforms, the output
 clamp, environment pixels, tiling) is described in the JSON (`export_manifest`) so that a renderer can
@@ -20,6 +21,7 @@ from torch import nn
 from admc.common.layout import FEATURE_CHANNELS
 
 from ..nets.generator import Generator
+from ..transforms import NOISE_STD_UNIT
 
 OPSET = 17
 """ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""
@@ -28,9 +30,26 @@ FORMAT = "admc-onnx"
 FORMAT_VERSION = 1
 
 
+INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "base": 3}
+
+
 def input_names(generator: Generator) -> list[str]:
-    """The graph's inputs, in the order `forward` takes them."""
-    return ["noisy", "features", "base"] if generator.config.refines else ["noisy", "features"]
+    """The graph's inputs, in the order its forward takes them: noisy, features, [noise], [base]."""
+    return (["noisy", "features"] + (["noise"] if generator.config.noise_input else [])
+            + (["base"] if generator.config.refines else []))
+
+
+class _NoiseAsInput(nn.Module):
+    """A model.noise_input generator with its noise map as an input of its own (the generator reads it as
+    the features' last channel): a renderer passes the 7 features as for any weights, and the map beside them."""
+
+    def __init__(self, generator: Generator) -> None:
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, noisy: torch.Tensor, features: torch.Tensor, noise: torch.Tensor,
+                base: torch.Tensor | None = None) -> torch.Tensor:
+        return self.generator(noisy, torch.cat([features, noise], dim=1), base)
 
 
 def export_generator(generator: Generator, path: Path) -> None:
@@ -46,7 +65,9 @@ def generator_graph(generator: Generator) -> bytes:
     module = copy.deepcopy(generator).float().cpu().eval()
     names = input_names(module)
     size = 2 * module.alignment * 4
-    example = tuple(torch.rand(1, 3 if name != "features" else len(FEATURE_CHANNELS), size, size) for name in names)
+    example = tuple(torch.rand(1, INPUT_CHANNELS[name], size, size) for name in names)
+    if module.config.noise_input:
+        module = _NoiseAsInput(module)
     dynamic = {name: {2: "height", 3: "width"} for name in [*names, "denoised"]}
     graph = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
@@ -65,10 +86,16 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
         "version": FORMAT_VERSION,
         "opset": OPSET,
         "base": first.config.base,
+        **({"noise_input": True} if first.config.noise_input else {}),  # absent without: the JSON as before
         "graphs": {branch: f"{branch}.onnx" for branch in generators},
         "inputs": {
             "noisy": "the branch's radiance in its log domain (transform.diffuse or transform.specular), RGB",
             "features": list(FEATURE_CHANNELS),
+            **({"noise": "the branch's noise map (1 channel) from the render's variance of each pixel's mean: "
+                         "log1p(std / noise_std_unit) / log1p(1 / noise_std_unit), std = mean over RGB of "
+                         "sqrt(variance) / (radiance + scale), scale = albedo + eps for diffuse, 1 for specular "
+                         "(radiance and variance at the exposure the network sees)"}
+               if first.config.noise_input else {}),
             **({"base": "OIDN's output of the branch (hdr, albedo + normal), same log domain, RGB"}
                if first.config.refines else {}),
         },
@@ -79,6 +106,7 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "environment": "where coverage = 0 keep the input (noisy) value instead of the output",
         },
         "eps": transform["eps"],
+        **({"noise_std_unit": NOISE_STD_UNIT} if first.config.noise_input else {}),
         "transform": transform,
         "gate_radius": {branch: g.gate_radius for branch, g in generators.items()},
         "receptive_radius": halo,
