@@ -91,6 +91,28 @@ def test_sanitize_keeps_valid_values_and_refuses_unknown_layers():
         sanitize(inside, "ref_diffuse")
 
 
+@pytest.mark.parametrize("name", list(LAYERS))
+def test_one_bad_value_in_a_clean_layer_is_repaired_as_in_a_dirty_one(name):
+    """A clean layer takes a shortcut (its min and max checked, then copied): a single NaN, Inf or
+    out-of-range value anywhere must still take the full rule, and the clean result is a copy."""
+    clean_layer = np.full((7, 5, 3), 0.5, np.float32)
+    for position, value in enumerate(PROBE):
+        if value == 0.5:
+            continue
+        layer = clean_layer.copy()
+        layer[3, 2, 1] = value
+        repaired, counts = sanitize(layer, name)
+        expected = clean_layer.copy()
+        expected[3, 2, 1] = EXPECTED[name][position]
+        np.testing.assert_array_equal(repaired, expected, err_msg=f"{name}: {value}")
+        assert sum(counts.values()) == (value != 1e10 or LAYERS[name].high is not None), (name, value, counts)
+    repaired, counts = sanitize(clean_layer, name)
+    np.testing.assert_array_equal(repaired, clean_layer)
+    assert not any(counts.values())
+    repaired[0, 0, 0] = 2.0
+    assert clean_layer[0, 0, 0] == 0.5, "the result is a new array, never the input"
+
+
 def test_nonfinite_report_flags_negatives_where_the_schema_forbids_them():
     report = nonfinite_report({name: np.full((2, 2, len(layer.channels)), -0.5, np.float32)
                                for name, layer in LAYERS.items()})
