@@ -131,6 +131,7 @@ class EvalConfig:
     test_families: tuple[str, ...]
     test_scenes_per_family: int
     test_seed: int
+    test_resolution: tuple[int, int]
     ood_families: tuple[str, ...]
     ood_scenes_per_family: int
     ood_seed: int
@@ -144,6 +145,9 @@ class EvalConfig:
                  f"must be >= 0, got {self.test_scenes_per_family}")
         _require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "eval.test_families",
                  "empty but eval.test_scenes_per_family > 0")
+        w, h = self.test_resolution
+        _require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "eval.test_resolution",
+                 f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.test_resolution)}")
         _require(self.split in ("train", "val", "test", "ood"), "eval.split",
                  f"must be train, val, test or ood, got {self.split!r}")
         _require(self.ood_scenes_per_family >= 0, "eval.ood_scenes_per_family",

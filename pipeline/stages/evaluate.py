@@ -51,7 +51,7 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
         families = list(cfg.eval.test_families)
         try:
             chosen += scenes.procedural_corpus(families, cfg.eval.test_scenes_per_family * len(families),
-                                               cfg.eval.test_seed, cfg.render.resolution)
+                                               cfg.eval.test_seed, cfg.eval.test_resolution)
         except scenes.SceneError as exc:
             raise EvalStageError(f"config key 'eval.test_families': {exc}") from None
     return chosen
