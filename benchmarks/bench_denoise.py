@@ -18,7 +18,7 @@ each, the precisions and the baselines take turns run by run (a busy machine slo
 figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
 OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and
 the ONNX engines run on a CPU only (model/inference/engines.py). By default the image runs in the denoiser's own tiles with the
-receptive-field halo (tiling.default_tile: 320 on a CPU, 512 on a GPU, at least 8 halos), as
+receptive-field halo (tiling.default_tile: 320 on a CPU, 640 in OpenVINO, 512 on a GPU, at least 8 halos), as
 `admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
 2-core CPU is about twice as slow at 1280x720 (whole-image convs leave the caches).
 """

@@ -51,32 +51,34 @@ def _require_finite(func: str, **arrays: np.ndarray) -> None:
 
 def _demodulation_albedo(albedo: np.ndarray) -> np.ndarray:
     """Albedo as used to (de)modulate diffuse: the same clipped values as the albedo feature."""
-    return np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0) + EPS
+    return np.clip(np.asarray(albedo, dtype=np.float32), 0.0, 1.0) + np.float32(EPS)
 
 
 def diffuse_forward(diffuse: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-    """log1p(diffuse / (albedo + eps)) on finite inputs; computed in float64 so huge inputs stay finite."""
+    """log1p(diffuse / (albedo + eps)) on finite inputs, in float32: the clip keeps the quotient below
+    RADIANCE_MAX / EPS (2.1e7), far inside float32's range, and float64 would only change the last bit
+    of values the network reads in bf16 (and the patch store keeps in FP16)."""
     _require_finite("diffuse_forward", diffuse=diffuse, albedo=albedo)
-    d = np.clip(np.asarray(diffuse, dtype=np.float64), 0.0, RADIANCE_MAX)
-    return np.log1p(d / _demodulation_albedo(albedo)).astype(np.float32)
+    d = np.clip(np.asarray(diffuse, dtype=np.float32), 0.0, RADIANCE_MAX)
+    return np.log1p(d / _demodulation_albedo(albedo))
 
 
 def diffuse_inverse(d: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     """expm1(d) * (albedo + eps): linear diffuse radiance from the log domain."""
     _require_finite("diffuse_inverse", d=d, albedo=albedo)
-    return (np.expm1(np.asarray(d, dtype=np.float64)) * _demodulation_albedo(albedo)).astype(np.float32)
+    return np.expm1(np.asarray(d, dtype=np.float32)) * _demodulation_albedo(albedo)
 
 
 def specular_forward(specular: np.ndarray) -> np.ndarray:
     """log1p(specular) on finite inputs, negatives to 0."""
     _require_finite("specular_forward", specular=specular)
-    return np.log1p(np.clip(np.asarray(specular, dtype=np.float64), 0.0, RADIANCE_MAX)).astype(np.float32)
+    return np.log1p(np.clip(np.asarray(specular, dtype=np.float32), 0.0, RADIANCE_MAX))
 
 
 def specular_inverse(s: np.ndarray) -> np.ndarray:
     """expm1(s): linear specular radiance from the log domain."""
     _require_finite("specular_inverse", s=s)
-    return np.expm1(np.asarray(s, dtype=np.float64)).astype(np.float32)
+    return np.expm1(np.asarray(s, dtype=np.float32))
 
 
 def normal_forward(normal: np.ndarray) -> np.ndarray:

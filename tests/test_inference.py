@@ -5,7 +5,7 @@ import torch
 from torch import nn
 
 from admc.model.inference.denoiser import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
-from admc.model.inference.tiling import CPU_TILE, GPU_TILE, axis_windows, default_tile, receptive_radius, run_tiled
+from admc.model.inference.tiling import CPU_TILE, GPU_TILE, OPENVINO_TILE, axis_windows, default_tile, receptive_radius, run_tiled
 from admc.model.nets.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
@@ -159,6 +159,9 @@ def test_default_tile_is_by_device_and_at_least_eight_halos():
     assert default_tile(torch.device("cpu"), 12) == CPU_TILE == 320
     assert default_tile(torch.device("cuda"), 12) == GPU_TILE == 512  # a device name: no GPU needed
     assert default_tile(torch.device("cpu"), 116) == 928  # the multi-scale body's halo
+    assert default_tile(torch.device("cpu"), 12, "openvino") == OPENVINO_TILE == 640
+    assert default_tile(torch.device("cpu"), 116, "openvino") == 928
+    assert default_tile(torch.device("cpu"), 12, "onnxruntime") == CPU_TILE
     assert FullImageDenoiser(Generator(TINY), None).tile == CPU_TILE
     assert FullImageDenoiser(Generator(TINY), None, tile=48).tile == 48
 

@@ -109,7 +109,7 @@ class FullImageDenoiser:
 
     `diffuse` and `specular` are admc Generators (or any module called as `(noisy, features)`; those
     need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
-    largest core edge run at once (None: tiling.default_tile, by device and halo); `overlap` is the
+    largest core edge run at once (None: tiling.default_tile, by device, halo and engine); `overlap` is the
     halo around each core, by default the largest receptive radius of the two generators, and a
     smaller one is refused (tiles would then differ from the untiled image: seams). `dtype`: None =
     bfloat16 autocast on CUDA and on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere
@@ -167,7 +167,7 @@ class FullImageDenoiser:
         if engine != "torch":
             self.generators = onnx_generators(self.generators, engine, self.dtype)
         self.engine = engine
-        self.tile = tile or default_tile(self.torch_device, overlap)
+        self.tile = tile or default_tile(self.torch_device, overlap, engine)
         self.overlap = overlap
         self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
                        + (f", ensemble of {ensemble}" if ensemble > 1 else "")
@@ -347,6 +347,8 @@ def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarr
     (which the integrator gives a coverage: it is noisy) are denoised as usual.
     """
     environment = coverage == 0
+    if not environment.any():  # most images: no copy
+        return outputs
     return {branch: np.where(environment, inputs[branch], out) for branch, out in outputs.items()}
 
 

@@ -23,14 +23,19 @@ the 2-core EPYC (32 MB L3) the small model's network time for 1280x720 was 2.4-2
 against 2.9 s in tiles of 512 (docs/benchmarks.md)."""
 GPU_TILE = 512
 """A GPU's: it has no cache cliff at these sizes, and a larger tile repeats fewer halo pixels."""
+OPENVINO_TILE = 640
+"""OpenVINO's on a CPU: its kernels block for the cache themselves, so fewer, larger tiles repeat fewer halo
+pixels and calls. 1280x720, small model, bf16, 2-core EPYC with AVX512-BF16, three alternating runs of 7:
+the network took 512-658 ms in tiles of 640 against 615-759 ms in tiles of 320 (docs/engines.md)."""
 HALOS_PER_TILE = 8
 """A tile is at least this many halos wide, so the halo adds at most (1 + 2/8)^2 = 1.56x the pixels: the
 multi-scale body's 116-px halo gets 928-px tiles (1280x720 in 8.1 s on the EPYC, 11.1 s in tiles of 512)."""
 
 
-def default_tile(device: torch.device, halo: int) -> int:
-    """The tile core edge a denoiser on `device` with this `halo` uses unless told otherwise."""
-    return max(GPU_TILE if device.type == "cuda" else CPU_TILE, HALOS_PER_TILE * halo)
+def default_tile(device: torch.device, halo: int, engine: str = "torch") -> int:
+    """The tile core edge a denoiser on `device` with this `halo` and `engine` uses unless told otherwise."""
+    edge = GPU_TILE if device.type == "cuda" else OPENVINO_TILE if engine == "openvino" else CPU_TILE
+    return max(edge, HALOS_PER_TILE * halo)
 
 
 def receptive_radius(generator: Generator) -> int:
