@@ -205,8 +205,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
             tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; results are "
-                                                                    "the same). Default: 320 on a CPU, 512 on a "
-                                                                    "GPU, at least 8 halos.")] = None,
+                                                                    "the same). Default: 320 on a CPU (640 in "
+                                                                    "OpenVINO), 512 on a GPU, at least 8 "
+                                                                    "halos.")] = None,
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
                                                        "of the input: less error, that many times the time.")] = 1,
             dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
@@ -235,7 +236,7 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             check_output_path(target, source)
             if model is None:  # after the first input checks out
                 model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
-                                   engine=engine or cfg.eval.engine)
+                                   engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             missing = model.missing_layers(source.layers)
             if missing:

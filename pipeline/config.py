@@ -139,6 +139,7 @@ class EvalConfig:
     dark_pass: bool
     engine: str
     also_ensemble_dark: bool
+    keep_resolved: bool
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",

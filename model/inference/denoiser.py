@@ -42,6 +42,7 @@ from ..transforms import (
 from .engines import check_engine, default_precision, onnx_generators, resolve_engine
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .oidn_base import oidn_bases
+from .resolved import keep_resolved
 from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
@@ -79,6 +80,7 @@ class DenoiseResult:
     base_seconds: float = 0.0            # OIDN's time for a refiner's bases (0 for base "noisy")
     exposure_gain: float = 1.0           # the radiance went through the networks times this (exposure.py)
     dark_share: float = 0.0              # mean share of the second pass at DARK_GAIN x that (0: it did not run)
+    resolved_share: float = 0.0          # mean weight of the input kept where it was resolved (resolved.py)
     seconds: float = 0.0                 # whole call: sanitising, OIDN, transforms, networks, inverse
 
     @property
@@ -94,6 +96,9 @@ class DenoiseResult:
             notes.append(f"the network produced {self.nonfinite_outputs} non-finite value(s), set to 0")
         if self.exposure_gain != 1.0:
             notes.append(f"a dim image: denoised at {self.exposure_gain:.3g}x its exposure, the output scaled back")
+        if self.resolved_share:
+            notes.append(f"where the render was already resolved, kept its detail (mean weight of the input "
+                         f"{self.resolved_share:.2g})")
         return notes
 
 
@@ -122,7 +127,9 @@ class FullImageDenoiser:
     `dark_pass` denoises the image a second time at DARK_GAIN times the exposure where it has dark
     regions, and takes those from it (exposure.dark_weights): up to twice the network time.
     `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
-    (symmetry.py), at that many times the network time. `engine` runs the generators' forward passes:
+    (symmetry.py), at that many times the network time. `keep_resolved` moves the output back toward the
+    input where the input is nearly converged and the output departs from it beyond its noise
+    (resolved.py); it needs the variance layers (diffuse_var, specular_var) and is skipped without them. `engine` runs the generators' forward passes:
     "torch" (the reference), or on a CPU their exported ONNX graphs in "onnxruntime" (float32) or
     "openvino" (`dtype` as for torch: its INFERENCE_PRECISION_HINT); "auto" is openvino on a CPU and torch
     on a GPU (engines.resolve_engine). Everything around the networks is the same in every engine.
@@ -133,7 +140,7 @@ class FullImageDenoiser:
                  tile: int | None = None, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
                  normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1,
-                 engine: str = "torch") -> None:
+                 engine: str = "torch", keep_resolved: bool = False) -> None:
         if tile is not None and tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         if ensemble not in ENSEMBLE_CODES:
@@ -171,11 +178,13 @@ class FullImageDenoiser:
         self.overlap = overlap
         self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
                        + (f", ensemble of {ensemble}" if ensemble > 1 else "")
-                       + (", dark pass" if dark_pass else ""))
+                       + (", dark pass" if dark_pass else "")
+                       + (", keeps resolved input" if keep_resolved else ""))
         self.name, self.source = name, source
         self.normalize_exposure = normalize_exposure
         self.dark_pass = dark_pass
         self.ensemble = ensemble
+        self.keep_resolved = keep_resolved
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         return generator.to(self.torch_device, memory_format=MEMORY_FORMAT).eval()
@@ -203,7 +212,8 @@ class FullImageDenoiser:
                 f"denoiser input lacks layer(s) {', '.join(missing)}, which {self.source or 'these weights'} read "
                 "(model.noise_input: the variance of each pixel's mean, as `admc-pipe render` writes)")
         run_specular = "specular" in layers and "specular" in self.generators
-        reads = tuple(f"{b}_var" for b in ("diffuse", "specular")[:1 + run_specular] if b in self.noise_branches)
+        reads = tuple(f"{b}_var" for b in ("diffuse", "specular")[:1 + run_specular]
+                      if b in self.noise_branches or (self.keep_resolved and f"{b}_var" in layers))
         clean, sanitized = sanitize_layers(layers, reads)
         run_specular = "specular" in clean and "specular" in self.generators
         gain = exposure_gain(_beauty(clean["diffuse"], clean.get("specular"))) if self.normalize_exposure else 1.0
@@ -221,13 +231,17 @@ class FullImageDenoiser:
                 if run_specular:
                     specular[region] += share * (passes[1].specular - specular[region])
                 dark_share = float(weights.mean())
+        resolved_share = 0.0
+        if self.keep_resolved:
+            diffuse, specular, resolved_share = _keep_resolved(clean, diffuse, specular, run_specular)
         return DenoiseResult(
             image=_beauty(diffuse, specular), diffuse=diffuse, specular=specular,
             branches=("diffuse", "specular")[:1 + run_specular],
             specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
             nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
             network_seconds=sum(p.network_seconds for p in passes), base_seconds=sum(p.base_seconds for p in passes),
-            exposure_gain=gain, dark_share=dark_share, seconds=time.perf_counter() - start,
+            exposure_gain=gain, dark_share=dark_share, resolved_share=resolved_share,
+            seconds=time.perf_counter() - start,
         )
 
     def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool,
@@ -316,6 +330,20 @@ def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, 
     return span(dark.any(axis=1)), span(dark.any(axis=0))
 
 
+def _keep_resolved(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None,
+                   run_specular: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """Each denoised branch with a variance layer moved toward its input where that is resolved (resolved.py);
+    returns the branches and the mean weight of the input over them."""
+    value = _beauty(diffuse, specular)
+    outputs = {"diffuse": diffuse, "specular": specular}
+    shares = []
+    for branch in ("diffuse", "specular")[:1 + run_specular]:
+        if f"{branch}_var" in clean:
+            outputs[branch], share = keep_resolved(outputs[branch], clean[branch], clean[f"{branch}_var"], value)
+            shares.append(share)
+    return outputs["diffuse"], outputs["specular"], float(np.mean(shares)) if shares else 0.0
+
+
 def _beauty(diffuse: np.ndarray, specular: np.ndarray | None) -> np.ndarray:
     """The final image of the two branches (a new array, never one of them)."""
     return diffuse + specular if specular is not None else diffuse.copy()
@@ -391,7 +419,7 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None = None,
                   compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
                   dark_pass: bool = False, ensemble: int = 1, engine: str = "torch",
-                  dtype: torch.dtype | None = None) -> FullImageDenoiser:
+                  dtype: torch.dtype | None = None, keep_resolved: bool = False) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
@@ -423,4 +451,4 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
                              normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble,
-                             engine=engine, dtype=dtype)
+                             engine=engine, dtype=dtype, keep_resolved=keep_resolved)

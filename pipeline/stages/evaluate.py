@@ -109,7 +109,7 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     for name, path in named:
         for ensemble, dark_pass, suffix in settings:
             model = load_model(cfg, path, device, name=name, ensemble=ensemble, dark_pass=dark_pass,
-                               engine=cfg.eval.engine)
+                               engine=cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
             model.name += suffix
             models.append(model)
     return models
