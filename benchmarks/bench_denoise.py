@@ -12,7 +12,7 @@ engine (eval.engine of configs/default.toml) in its default precision, the lines
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
 model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run
-is one FullImageDenoiser call; "network" is the generators' share (synchronised: on CUDA it ends with
+is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the generators' share (synchronised: on CUDA it ends with
 the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
@@ -89,7 +89,7 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     # a copy of the networks per denoiser: it moves them to its memory layout in place
     denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device,
                                                tile=tile, dtype=PRECISIONS[p], compile=args.compile and e == "torch",
-                                               engine=e)
+                                               engine=e, keep_resolved=load_config().eval.keep_resolved)
                  for e in args.engines for p in args.precisions if runs_here(e, p, args.device)}
     for precision, denoiser in denoisers.items():
         first = denoiser(layers).seconds
