@@ -105,14 +105,16 @@ def test_changed_architecture_is_refused_until_restart(pretrained):
 def test_eval_includes_the_trained_model(pretrained):
     workdir, _ = pretrained
     weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
-    out = cli("eval", "--weights", str(weights), *flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1"]))
+    out = cli("eval", "--weights", str(weights), *flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1",
+                                                                           "eval.also_ensemble_dark=true"]))
     assert out.returncode == 0, out.stderr
     table = (workdir / "eval" / "table1.csv").read_text()
     assert {"noisy", "oidn", "admc"} <= {line.split(",")[1] for line in table.splitlines()[1:]}
     assert f"**Weights:** admc: {weights}" in (workdir / "eval" / "table1.md").read_text()
     devices = json.loads((workdir / "eval" / "results.json").read_text())["devices"]
-    assert not devices["admc"].endswith(", dark pass")  # the default row runs at the frontier's settings,
-    assert devices["admc-ens4+dark"].endswith(", ensemble of 4, dark pass")  # the costly ones in a row of their own
+    assert "dark pass" not in devices["admc"]  # the default row runs at the frontier's settings,
+    assert ", ensemble of 4, dark pass" in devices["admc-ens4+dark"]  # the costly ones in a row of their own
+    assert all(d.endswith(", keeps resolved input") for name, d in devices.items() if name.startswith("admc"))
 
 
 def test_eval_compares_several_checkpoints_in_one_table(pretrained):
@@ -153,7 +155,7 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
     assert layers[BEAUTY].shape == (64, 64, 3) and np.isfinite(layers[BEAUTY]).all()
     assert "dark pass" not in out.stdout  # off unless asked for
     out = cli("denoise", str(render), "-o", str(tmp_path / "b.exr"), "--weights", str(weights), "--dark-pass")
-    assert out.returncode == 0 and ", dark pass)" in out.stdout, out.stderr
+    assert out.returncode == 0 and ", dark pass, keeps resolved input)" in out.stdout, out.stderr
     assert np.isfinite(read_exr(tmp_path / "b.exr")[BEAUTY]).all()
 
     src = read_exr(render)
