@@ -43,7 +43,8 @@ from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
                                                 time_denoiser)
 
-SMALL = load_config().model  # configs/default.toml
+DEFAULTS = load_config()  # configs/default.toml
+SMALL = DEFAULTS.model
 CONFIGS = {
     "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model.generator_config(),
     "small": SMALL.generator_config(),
@@ -89,7 +90,7 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     # a copy of the networks per denoiser: it moves them to its memory layout in place
     denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device,
                                                tile=tile, dtype=PRECISIONS[p], compile=args.compile and e == "torch",
-                                               engine=e, keep_resolved=load_config().eval.keep_resolved)
+                                               engine=e, keep_resolved=DEFAULTS.eval.keep_resolved)
                  for e in args.engines for p in args.precisions if runs_here(e, p, args.device)}
     for precision, denoiser in denoisers.items():
         first = denoiser(layers).seconds
@@ -162,7 +163,7 @@ def main() -> None:
     device = torch.device(args.device)
     where = (torch.cuda.get_device_name(device) if device.type == "cuda"
              else f"cpu, {torch.get_num_threads()} threads")
-    engine = resolve_engine(load_config(None, []).eval.engine, device)
+    engine = resolve_engine(DEFAULTS.eval.engine, device)
     default = f"{engine} {precision_name(default_precision(engine, device))}"
     print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
           f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")

@@ -132,7 +132,8 @@ class FullImageDenoiser:
     (resolved.py); it needs the variance layers (diffuse_var, specular_var) and is skipped without them.
     `engine` runs the generators' forward passes: "torch" (the reference), or on a CPU their exported
     ONNX graphs in "onnxruntime" (float32) or "openvino" (`dtype` as for torch: its
-    INFERENCE_PRECISION_HINT); "auto" is openvino on a CPU and torch on a GPU (engines.resolve_engine). Everything around the networks is the same in every engine.
+    INFERENCE_PRECISION_HINT); "auto" is openvino on a CPU and torch on a GPU (engines.resolve_engine).
+    Everything around the networks is the same in every engine.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 

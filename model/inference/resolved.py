@@ -21,24 +21,24 @@ corpus.seed 0, never on a test image, from window radii 2-6, margins 0-12, CONVE
 UNSAMPLED 0-0.25 (docs/results/2026-12-02-keep-resolved.md). With these values admc's relMSE, 1-SSIM and
 HDR-FLIP out of family moved by 1.9%, 2.5% and 0.7% less error at 64 spp, removing both cells where it
 had been worse than its input, by at most 0.4% on any image at 4 and 16 spp; in family by under 0.1%.
-It costs two box filters per branch.
+It costs two box filters per branch, a third where any window is resolved.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
+from admc.common.metrics import RELMSE_EPS
+
 RADIUS = 4
 """Half the window edge over which the bias and the variance are averaged (9x9 pixels)."""
 MARGIN = 8.0
 """How many standard errors of the window's mean squared difference b^2 must exceed before it counts."""
 CONVERGED = 1e-2
-"""Relative variance of the mean (v / (value^2 + 0.01), window mean) below which an input counts as resolved:
+"""Relative variance of the mean (v / (value^2 + RELMSE_EPS), window mean) below which an input counts as resolved:
 a relative standard error of about 10%."""
 UNSAMPLED = 0.25
 """The largest share of a window's pixels with a variance of 0 for which it can count as resolved."""
-RELATIVE_FLOOR = 0.01
-"""Added to the squared pixel value before dividing, as relMSE does: dark pixels are not blown up."""
 
 
 def keep_resolved(denoised: np.ndarray, noisy: np.ndarray, variance: np.ndarray,
@@ -50,7 +50,7 @@ def keep_resolved(denoised: np.ndarray, noisy: np.ndarray, variance: np.ndarray,
     Pixels with weight 0 keep `denoised` exactly.
     """
     size = 2 * RADIUS + 1
-    scale = np.square(_channel_mean(value)) + np.float32(RELATIVE_FLOOR)
+    scale = np.square(_channel_mean(value)) + np.float32(RELMSE_EPS)  # as relMSE: dark pixels are not blown up
     mean_variance = np.maximum(uniform_filter(_channel_mean(variance) / scale, size, mode="reflect"), 0.0)
     silent = (variance[..., 0] <= 0) & (variance[..., 1] <= 0) & (variance[..., 2] <= 0)
     unsampled = uniform_filter(silent.astype(np.float32), size, mode="reflect")
