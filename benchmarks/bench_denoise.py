@@ -30,6 +30,7 @@ import statistics
 from dataclasses import replace
 from importlib import resources
 
+import admc  # noqa: F401  (first: it sets GOMP_SPINCOUNT before torch loads, as in admc-pipe)
 import numpy as np
 import torch
 

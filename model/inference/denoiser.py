@@ -12,6 +12,7 @@ image are taken from a second pass at a higher exposure (exposure.py).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from torch import Tensor, nn
 
 from admc.common.buffers import DENOISER_LAYERS, LAYERS, sanitize
 from admc.common.diff import differing_keys
+from admc.common.threads import torch_inline
 from admc.errors import AdmcError
 
 from ..nets.backbones import build_generator
@@ -207,6 +209,10 @@ class FullImageDenoiser:
         """`layers`: diffuse, [specular], albedo, normal, [depth], [coverage] as (H, W, C) float arrays, and
         diffuse_var [and specular_var] (the variance of each pixel's mean) for weights with model.noise_input."""
         start = time.perf_counter()
+        with torch_inline() if self.engine != "torch" else contextlib.nullcontext():  # torch's pool spins
+            return self._denoise(layers, start)
+
+    def _denoise(self, layers: dict[str, np.ndarray], start: float) -> DenoiseResult:
         missing = self.missing_layers(layers)
         if missing:
             raise MissingVarianceError(
