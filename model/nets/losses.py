@@ -46,11 +46,15 @@ def display_ssim_loss(fake: Tensor, real: Tensor, linear_scale: Tensor | None = 
 
     Why: relMSE and the log-domain L1 barely see an error of a few 8-bit levels in a deep shadow, which
     the gamma curve and SSIM's normalisation by local contrast make one of the largest in 1-SSIM.
+    Always float32, autocast off: its variances are blur(x^2) - blur(x)^2 of values up to 255, which in
+    bf16 (8 significant bits) lose everything below ~250 to cancellation, far above SSIM's c2 = 58.5, and
+    bf16 training with the term then drifted away from its start (docs/results/2026-12-02-bf16-ssim-loss.md).
     """
-    fake_linear, real_linear = torch.expm1(fake.float()), torch.expm1(real.float())
-    if linear_scale is not None:
-        fake_linear, real_linear = fake_linear * linear_scale.float(), real_linear * linear_scale.float()
-    return 1.0 - ssim_map_torch(display(fake_linear), display(real_linear)).mean()
+    with torch.autocast(device_type=fake.device.type, enabled=False):
+        fake_linear, real_linear = torch.expm1(fake.float()), torch.expm1(real.float())
+        if linear_scale is not None:
+            fake_linear, real_linear = fake_linear * linear_scale.float(), real_linear * linear_scale.float()
+        return 1.0 - ssim_map_torch(display(fake_linear), display(real_linear)).mean()
 
 
 def generator_loss(fake: Tensor, real: Tensor, critic_fake: Tensor | None, l1_weight: float = 1.0,
