@@ -12,8 +12,9 @@ engine (eval.engine of configs/default.toml) in its default precision, the lines
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
 model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run
-is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the generators' share (synchronised: on CUDA it ends with
-the copy back to the host), "total" adds sanitising and the NumPy transforms. After --warmup untimed runs
+is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the
+generators' share (synchronised: on CUDA it ends with the copy back to the host), "total" adds
+sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
 figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
 OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and

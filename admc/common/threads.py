@@ -17,9 +17,6 @@ def torch_inline() -> Iterator[None]:
     small to gain from two threads: inline, the demo's 160x160 test images took admc 16-18 ms each
     instead of 22-24 ms (docs/engines.md)."""
     threads = torch.get_num_threads()
-    if threads == 1:
-        yield
-        return
     torch.set_num_threads(1)
     try:
         yield
