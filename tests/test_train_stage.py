@@ -5,12 +5,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from admc.pipeline.config import load_config
-from admc.pipeline.weights import shipped_weights
+from admc.pipeline.weights import WEIGHTS_DIR, shipped_weights
 from admc.stores.checkpoints import load_checkpoint, load_weights
 
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
+SHIP_WEIGHTS = Path(__file__).resolve().parents[1] / "scripts" / "ship_weights.py"
 
 
 def settings(workdir, steps=4):
@@ -139,6 +141,43 @@ def test_eval_compares_several_checkpoints_in_one_table(pretrained):
     assert clash.returncode == 2 and "name them apart with NAME=PATH" in clash.stderr
     both = cli("eval", "--no-model", "--weights", str(run / "checkpoint.pt"), *common)
     assert both.returncode == 2 and "contradict" in both.stderr
+
+
+def test_ship_weights_publishes_the_run_or_a_checkpoint_saved_at_a_chosen_step(pretrained, tmp_path):
+    workdir, _ = pretrained
+    run = workdir / "train" / "pretrain"
+    saved = tmp_path / "saved.pt"  # what a user copies aside at the step an out-of-family score picks
+    saved.write_bytes((run / "checkpoint.pt").read_bytes())
+    ship = [sys.executable, str(SHIP_WEIGHTS), str(run), "--to", str(tmp_path / "weights")]
+    out = subprocess.run([*ship, "from-run", "--note", "the run's own pick"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "weights" / "from-run.pt").read_bytes() == (run / "weights-fp16.pt").read_bytes()
+    out = subprocess.run([*ship, "chosen", "--checkpoint", str(saved)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    checkpoint, shipped = load_checkpoint(saved), load_weights(tmp_path / "weights" / "chosen.pt")
+    step = checkpoint["step"]
+    assert shipped["metadata"]["step"] == step and shipped["metadata"]["model"] == checkpoint["model"]
+    assert {b: s["step"] for b, s in shipped["metadata"]["selected"].items()} == {"diffuse": step, "specular": step}
+    for branch, state in checkpoint["branches"].items():  # fp16 of exactly the checkpoint's networks
+        generator = state.get("average", state["generator"])
+        assert all(torch.equal(shipped["branches"][branch]["generator"][k], v.half()) for k, v in generator.items())
+    entries = json.loads((tmp_path / "weights" / "manifest.json").read_text())["weights"]
+    assert [(e["file"], e["steps"]) for e in entries] == [("chosen.pt", step)]  # same architecture: replaced
+    start = tmp_path / "weights" / "from-run.pt"
+    out = subprocess.run([*ship, "blend", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "0.25"],
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    blend, begin = load_weights(tmp_path / "weights" / "blend.pt"), load_weights(start)
+    for branch, state in checkpoint["branches"].items():  # 0.75 x the start + 0.25 x the checkpoint, then fp16
+        for key, value in state.get("average", state["generator"]).items():
+            expected = (0.75 * begin["branches"][branch]["generator"][key].float() + 0.25 * value.float()).half()
+            assert torch.equal(blend["branches"][branch]["generator"][key], expected)
+    assert blend["metadata"]["selected"]["diffuse"]["blend"] == 0.25
+    other = WEIGHTS_DIR / "admc-small-pretrained.pt"  # another architecture: refused, named
+    out = subprocess.run([*ship, "mixed", "--checkpoint", str(saved), "--blend-from", str(other)],
+                         capture_output=True, text=True)
+    assert out.returncode != 0 and f"{other}: not the architecture" in out.stderr
+    assert not (tmp_path / "weights" / "mixed.pt").exists()
 
 
 def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
