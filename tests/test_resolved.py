@@ -79,6 +79,24 @@ def test_an_unbiased_output_of_a_nearly_resolved_input_is_kept():
     assert mse(out, truth) < 0.01 * mse(noisy, truth)
 
 
+def test_light_bled_into_silent_pixels_beside_a_resolved_light_is_taken_back():
+    """A ceiling beside a ceiling light gets no direct light: its diffuse samples are all 0 (variance 0),
+    and a network that bleeds the light into it adds error no input showed (OOD scene ood-200000002). A
+    window that holds sampled, resolved pixels besides silent ones counts as resolved; a window of silent
+    pixels alone says nothing (every sample may have missed a small light) and is left as it was."""
+    noisy = np.zeros((SIZE, SIZE, 3), np.float32)
+    noisy[:2] = 20.0  # the light: every sample sees it, relative variance of the mean 5e-3
+    variance = np.where(noisy > 0, np.float32(2.0), np.float32(0.0))
+    bled = noisy.copy()
+    bled[:2] = 17.0
+    bled[2:12] = 1.0  # the light smeared 10 rows into the silent ceiling
+    out, share = keep_resolved(bled, noisy, variance, bled)
+    assert share > 0
+    assert np.abs(out[2:4]).max() < 0.05  # beside the light: back to the input's 0
+    assert np.abs(out[:2] - 20.0).max() < np.abs(bled[:2] - 20.0).max()
+    np.testing.assert_array_equal(out[2 + 4:], bled[2 + 4:])  # 9x9 windows without the light: as given
+
+
 class Smear(nn.Module):
     """A real module that returns its log-domain input averaged over the image: it removes every detail."""
     def forward(self, noisy, features):
