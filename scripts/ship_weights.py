@@ -80,6 +80,8 @@ def main() -> None:
     args.to.mkdir(exist_ok=True)
     if args.blend_from and not args.checkpoint:
         parser.error("--blend-from needs --checkpoint")
+    if not 0.0 <= args.blend <= 1.0:
+        parser.error(f"--blend {args.blend}: the checkpoint's share, from 0 to 1")
     if args.checkpoint:
         checkpoint, selected = export_checkpoint(args.checkpoint, target, args.blend_from, args.blend)
         model = checkpoint["model"]

@@ -178,6 +178,9 @@ def test_ship_weights_publishes_the_run_or_a_checkpoint_saved_at_a_chosen_step(p
                          capture_output=True, text=True)
     assert out.returncode != 0 and f"{other}: not the architecture" in out.stderr
     assert not (tmp_path / "weights" / "mixed.pt").exists()
+    out = subprocess.run([*ship, "far", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "1.5"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "--blend 1.5" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
