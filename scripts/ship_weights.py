@@ -76,12 +76,12 @@ def main() -> None:
     parser.add_argument("--note", default="")
     parser.add_argument("--to", type=Path, default=WEIGHTS_DIR, help="the weights folder (default: the package's)")
     args = parser.parse_args()
-    target = args.to / f"{args.name}.pt"
-    args.to.mkdir(exist_ok=True)
     if args.blend_from and not args.checkpoint:
         parser.error("--blend-from needs --checkpoint")
     if not 0.0 <= args.blend <= 1.0:
         parser.error(f"--blend {args.blend}: the checkpoint's share, from 0 to 1")
+    target = args.to / f"{args.name}.pt"
+    args.to.mkdir(exist_ok=True)
     if args.checkpoint:
         checkpoint, selected = export_checkpoint(args.checkpoint, target, args.blend_from, args.blend)
         model = checkpoint["model"]
