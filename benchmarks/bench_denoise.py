@@ -10,8 +10,9 @@ engine (eval.engine of configs/default.toml) in its default precision, the lines
         [--device cpu|cuda] [--tile N] [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
-admc+oidn refiner (model.base = "oidn"), whose call runs OIDN per branch first; small-unet is the small
-model on the multi-scale body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run
+admc+oidn refiner on the default bases (tile.refiner_base), whose call runs OIDN per branch first;
+small-unet is the small model on the multi-scale body (model.backbone = "unet"), whose tiles need a
+116-px halo. Each timed run
 is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the
 generators' share (synchronised: on CUDA it ends with the copy back to the host), "total" adds
 sanitising and the NumPy transforms. After --warmup untimed runs
@@ -50,7 +51,7 @@ SMALL = DEFAULTS.model
 CONFIGS = {
     "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model.generator_config(),
     "small": SMALL.generator_config(),
-    "small+oidn": replace(SMALL, base="oidn").generator_config(),
+    "small+oidn": replace(SMALL, base=DEFAULTS.tile.refiner_base).generator_config(),
     "small-unet": replace(SMALL, backbone="unet").generator_config(),
 }
 

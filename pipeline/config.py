@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
+from admc.common.layout import BASE_QUALITIES, ENGINE_CHOICES, ENSEMBLES
 from admc.common.oidn import QUALITIES as OIDN_QUALITIES
 from admc.errors import AdmcError
 from admc.model.nets.critic import DOWNSAMPLING
@@ -105,6 +105,7 @@ class TileConfig:
     seed: int
     val_set: str
     oidn_base: bool
+    refiner_base: str
     noise_maps: bool
 
     def check(self) -> None:
@@ -118,6 +119,8 @@ class TileConfig:
                  f"(sum {sum(self.split):g})")
         _require(bool(self.store), "tile.store", "must not be empty")
         _require(self.val_set in ("split", "ood"), "tile.val_set", f"must be split or ood, got {self.val_set!r}")
+        _require(self.refiner_base in BASE_QUALITIES, "tile.refiner_base",
+                 f"must be one of {', '.join(BASE_QUALITIES)}, got {self.refiner_base!r}")
 
 
 @dataclass(frozen=True)
@@ -350,9 +353,23 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
     _check_test_set_apart(config)
     _require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
              "tile.val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty")
-    _require(config.model.base != "oidn" or config.tile.oidn_base, "tile.oidn_base",
-             "is false, but model.base = 'oidn' trains on OIDN's outputs, which tiling stores only when it is true")
+    base = config.model.base
+    _require(base == "noisy" or config.tile.oidn_base, "tile.oidn_base",
+             f"is false, but model.base = {base!r} trains on OIDN's outputs, which tiling stores only when it is true")
+    stored = config.tile.refiner_base
+    if base not in ("noisy", stored):  # the message names each base's qualities, which "noisy" has not
+        raise ConfigError(f"config key 'tile.refiner_base': is {stored!r}, but model.base = {base!r} trains on the "
+                          f"bases of {base!r} (OIDN {_qualities(base)}; the store's: {_qualities(stored)}): set model.base = {stored!r}, or "
+                          f"tile.refiner_base = {base!r} with a tile.store of its own")
     return config
+
+
+def _qualities(base: str) -> str:
+    """'high' where both branches share a quality, else 'diffuse high, specular fast'."""
+    quality = BASE_QUALITIES[base]
+    if len(set(quality.values())) == 1:
+        return repr(quality["diffuse"])
+    return ", ".join(f"{branch} {q}" for branch, q in quality.items())
 
 
 def _check_test_set_apart(config: Config) -> None:

@@ -10,6 +10,7 @@ from importlib import resources
 from pathlib import Path
 
 from admc.common.diff import differing_keys
+from admc.common.layout import BASE_QUALITIES
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
 from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
@@ -31,15 +32,18 @@ def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
 
 
 def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
-    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json; for a
-    model.noise_input without shipped weights of its own, those of the same architecture without it
-    (fine-tuning then adds the input with zero weights, which computes what they did: resume.load_init)."""
+    """The shipped fp16 weights whose architecture is `model`, listed in weights/manifest.json; failing
+    that, a fine-tuning start: for a model.noise_input, those of the same architecture without it (fine-tuning
+    then adds the input with zero weights, which computes what they did: resume.load_init), and for a
+    refiner, one of the same network refining bases of another OIDN quality."""
     shipped = _shipped(weights_dir)
     exact = next((path for path, saved in shipped if saved == model), None)
-    if exact is None and model.noise_input:
-        plain = dataclasses.replace(model, noise_input=False)
-        return next((path for path, saved in shipped if saved == plain), None)
-    return exact
+    if exact is not None:
+        return exact
+    starts = [dataclasses.replace(model, noise_input=False)] if model.noise_input else []
+    if model.base != "noisy":
+        starts += [dataclasses.replace(start, base=base) for start in [model, *starts] for base in BASE_QUALITIES]
+    return next((path for start in starts for path, saved in shipped if saved == start), None)
 
 
 def shipped_mismatch(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> str:

@@ -9,8 +9,9 @@ import pyoidn
 import pytest
 
 from admc.common import oidn
+from admc.common.layout import BASE_QUALITIES
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, LAYERS, RADIANCE_MAX, VARIANCE_MAX, sanitize
-from admc.model.inference.oidn_base import QUALITY, oidn_bases
+from admc.model.inference.oidn_base import oidn_bases
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.render.integrator import aov_layout
@@ -163,11 +164,20 @@ def test_the_oidn_baseline_runs_at_its_quality_on_the_sanitised_beauty(quality):
     np.testing.assert_array_equal(image, pyoidn.denoise(colour, albedo, layers["normal"], hdr=True, quality=quality))
 
 
-def test_the_refiners_bases_are_oidn_at_the_quality_they_were_trained_with():
-    assert QUALITY == "high"
+@pytest.mark.parametrize("base", sorted(BASE_QUALITIES))
+def test_the_refiners_bases_are_oidn_at_the_qualities_their_base_names(base):
+    quality = BASE_QUALITIES[base]
     layers = _image(np.random.default_rng(4))
-    bases = oidn_bases(layers)
-    diffuse = pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality="high")
-    specular = pyoidn.denoise(layers["specular"], hdr=True, quality="high")
+    bases = oidn_bases(layers, base)
+    diffuse = pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True,
+                             quality=quality["diffuse"])
+    specular = pyoidn.denoise(layers["specular"], hdr=True, quality=quality["specular"])
     np.testing.assert_array_equal(bases["diffuse"], np.maximum(diffuse, 0.0))
     np.testing.assert_array_equal(bases["specular"], np.maximum(specular, 0.0))
+
+
+def test_the_fast_refiner_base_differs_from_the_high_one_on_the_specular_branch_only():
+    layers = _image(np.random.default_rng(4))
+    high, fast = oidn_bases(layers, "oidn"), oidn_bases(layers, "oidn-fast")
+    np.testing.assert_array_equal(high["diffuse"], fast["diffuse"])
+    assert not np.array_equal(high["specular"], fast["specular"])

@@ -9,6 +9,7 @@ import torch
 from test_cli import run
 from test_user_errors_cli import refused
 
+from admc.common.layout import BASE_QUALITIES
 from admc.model.inference.denoiser import load_denoiser
 from admc.pipeline.stages.export import export_onnx
 from admc.pipeline.weights import WEIGHTS_DIR
@@ -31,13 +32,15 @@ def log_inputs(generator, height, width, seed=0):
     return inputs
 
 
-@pytest.mark.parametrize("weights,base", [("admc-small-pretrained.pt", "noisy"), ("admc-small-refiner.pt", "oidn")])
+@pytest.mark.parametrize("weights,base", [("admc-small-pretrained.pt", "noisy"), ("admc-small-refiner.pt", "oidn"),
+                                          ("admc-small-refiner-fast.pt", "oidn-fast")])
 def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weights, base):
     written = export_onnx(WEIGHTS_DIR / weights, tmp_path / "onnx")  # what `admc-pipe export` calls
     assert sorted(p.name for p in written) == ["admc.json", "diffuse.onnx", "specular.onnx"]
     manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
     generators = load_denoiser(WEIGHTS_DIR / weights, dtype=torch.float32).generators
     assert manifest["base"] == base and set(manifest["graphs"]) == set(generators) == {"diffuse", "specular"}
+    assert manifest.get("base_quality") == BASE_QUALITIES.get(base)  # what OIDN runs at per branch, for a refiner
     assert manifest["gate_radius"] == {b: g.gate_radius for b, g in generators.items()}
     assert manifest["tile"]["halo"] == manifest["receptive_radius"] == 12  # 4 blocks: 1 + 8 + 1 + 2
     assert manifest["inputs"]["features"][:3] == ["normal.X", "normal.Y", "normal.Z"]

@@ -205,7 +205,8 @@ def test_weights_without_the_noise_input_widen_to_the_same_function(mode, backbo
         wide(noisy, feats, base_image)
 
 
-@pytest.mark.parametrize("name", ["admc-small-pretrained.pt", "admc-small-refiner.pt", "admc-small-unet.pt"])
+@pytest.mark.parametrize("name", ["admc-small-pretrained.pt", "admc-small-refiner.pt", "admc-small-refiner-fast.pt",
+                                  "admc-small-unet.pt"])
 def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_them(name):
     """What `admc-pipe train --stage finetune --set model.noise_input=true` starts from (resume.load_init):
     the shipped tensors bit for bit, zeros on the noise channel, and the same outputs at step 0."""
@@ -239,7 +240,7 @@ def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_t
         after.load_state_dict({k: v.double() for k, v in new.items()})
         before, after = before.double().eval(), after.double().eval()
         noisy, feats = torch.rand(1, 3, 40, 40, dtype=torch.float64), torch.rand(1, 7, 40, 40, dtype=torch.float64)
-        base = noisy.flip(-1) if plain.base == "oidn" else None
+        base = noisy.flip(-1) if plain.base != "noisy" else None
         with torch.no_grad():
             want = before(noisy, feats, base)
             got = after(noisy, torch.cat([feats, torch.rand(1, 1, 40, 40, dtype=torch.float64)], dim=1), base)

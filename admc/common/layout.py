@@ -3,10 +3,14 @@ from __future__ import annotations
 
 BRANCHES = ("diffuse", "specular")
 
-BASES = ("noisy", "oidn")
+BASE_QUALITIES = {"oidn": {"diffuse": "high", "specular": "high"}, "oidn-fast": {"diffuse": "high", "specular": "fast"}}
+"""The refining bases and the OIDN quality each branch's input is denoised at. OIDN `fast` takes about half
+of `high`'s time on a CPU (`balanced` runs as `high` there); on the specular branch, which OIDN denoises
+without guides, it costs a refiner about 1 %, on the diffuse branch 5-10 % (docs/results/2026-12-03-fast-bases.md)."""
+BASES = ("noisy", *BASE_QUALITIES)
 """What a generator starts from and corrects: the noisy radiance (the paper's denoiser) or Intel Open
 Image Denoise's output for the same branch (the admc+oidn refiner, which sees the noisy radiance
-through its EncoderNet)."""
+through its EncoderNet), at the qualities BASE_QUALITIES names."""
 ENSEMBLES = (1, 2, 4, 8)
 """How many symmetries of an input a denoiser may average its outputs over (model/symmetry.py)."""
 ENGINES = ("torch", "onnxruntime", "openvino")

@@ -3,7 +3,7 @@
 Large images run in tiles so CPU memory stays bounded; tiling.py makes the tiled result equal the
 untiled one (no seams).
 
-A refiner (generators with config.base = "oidn") first runs OIDN per branch on the whole image
+A refiner (generators with config.base "oidn" or "oidn-fast") first runs OIDN per branch on the whole image
 (oidn_base.oidn_bases, as tiling did for its training rows), then corrects OIDN's output tile by tile:
 one call, and its time includes OIDN's.
 
@@ -124,8 +124,9 @@ class FullImageDenoiser:
     `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
     image then pays the compile time). `name` is its column in the evaluation tables, `source` the
     weights file it came from (reported next to the tables). `base` is what the generators correct:
-    "noisy", or "oidn" for refiners (then OIDN runs first, inside the call). `normalize_exposure`
-    scales dim images up for the networks (exposure.py); False is the measurement without it.
+    "noisy", or "oidn" / "oidn-fast" for refiners (then OIDN runs first, at that base's qualities, inside
+    the call). `normalize_exposure` scales dim images up for the networks (exposure.py); False is the
+    measurement without it.
     `dark_pass` denoises the image a second time at DARK_GAIN times the exposure where it has dark
     regions, and takes those from it (exposure.dark_weights): up to twice the network time.
     `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
@@ -310,7 +311,7 @@ class FullImageDenoiser:
         branch's log domain; {} for base "noisy"."""
         if self.base == "noisy":
             return {}
-        linear = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)})
+        linear = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)}, self.base)
         forward = {"diffuse": lambda x: diffuse_forward(x, clean["albedo"][region]), "specular": specular_forward}
         return {branch: self._tensor(forward[branch](linear[branch][region])) for branch in branches}
 
@@ -419,7 +420,7 @@ def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = 
     return clean, report
 
 
-COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn"}
+COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn", "oidn-fast": "admc+oidn"}
 """A learned denoiser's default column name in the tables, by the base its weights record."""
 
 

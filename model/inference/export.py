@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from admc.common.layout import FEATURE_CHANNELS
+from admc.common.layout import BASE_QUALITIES, FEATURE_CHANNELS
 
 from ..nets.generator import Generator
 from ..transforms import NOISE_STD_UNIT
@@ -86,6 +86,7 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
         "version": FORMAT_VERSION,
         "opset": OPSET,
         "base": first.config.base,
+        **({"base_quality": BASE_QUALITIES[first.config.base]} if first.config.refines else {}),
         **({"noise_input": True} if first.config.noise_input else {}),  # absent without: the JSON as before
         "graphs": {branch: f"{branch}.onnx" for branch in generators},
         "inputs": {
@@ -96,7 +97,8 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
                          "sqrt(variance) / (radiance + scale), scale = albedo + eps for diffuse, 1 for specular "
                          "(radiance and variance at the exposure the network sees)"}
                if first.config.noise_input else {}),
-            **({"base": "OIDN's output of the branch (hdr, albedo + normal), same log domain, RGB"}
+            **({"base": "OIDN's output of the branch (hdr; diffuse with albedo + normal, specular alone) at "
+                        "base_quality, same log domain, RGB"}
                if first.config.refines else {}),
         },
         "layout": "NCHW float32, N = 1",

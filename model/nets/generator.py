@@ -41,7 +41,7 @@ class GeneratorConfig:
     input_skip: bool = False  # admc option: out = ReLU(noisy + tail), so training starts at the identity
     backbone: str = "residual"
     levels: int = 3           # unet: times the resolution is halved (blocks then run at 1/2^levels)
-    base: str = "noisy"       # "oidn": out = ReLU(OIDN + tail), the tail's last conv starting at 0 (see Generator)
+    base: str = "noisy"       # "oidn", "oidn-fast": out = ReLU(OIDN + tail), the tail's last conv starting at 0
     noise_input: bool = False  # features carry the branch's noise map as an 8th channel (transforms.noise_forward)
 
     def __post_init__(self) -> None:
@@ -50,7 +50,7 @@ class GeneratorConfig:
         if self.base not in BASES:
             raise ValueError(f"GeneratorConfig.base: {self.base!r} is not one of {BASES}")
         if self.refines and self.mode not in MODULATED_MODES:
-            raise ValueError(f"GeneratorConfig.base 'oidn' needs a modulated mode {MODULATED_MODES} (the noisy "
+            raise ValueError(f"GeneratorConfig.base {self.base!r} needs a modulated mode {MODULATED_MODES} (the noisy "
                              f"radiance reaches a refiner through its EncoderNet), got mode {self.mode!r}")
         if self.backbone not in BACKBONES:
             raise ValueError(f"GeneratorConfig.backbone: {self.backbone!r} is not one of {BACKBONES}")
@@ -71,7 +71,7 @@ class GeneratorConfig:
     @property
     def refines(self) -> bool:
         """Whether the generator corrects OIDN's output (given as `base`) rather than the noisy input."""
-        return self.base == "oidn"
+        return self.base != "noisy"
 
 
 def _condition_net(cond_channels: int, channels: int) -> nn.Sequential:
@@ -172,7 +172,7 @@ class Generator(nn.Module):
     GeneratorConfig). This class is the paper's full-resolution body; backbones.build_generator picks
     the backbone a config names.
 
-    A refiner (`config.base = "oidn"`) is called as `forward(noisy, features, base)`: the head sees the
+    A refiner (`config.refines`) is called as `forward(noisy, features, base)`: the head sees the
     base (OIDN's output, same log domain as noisy), the EncoderNet sees features + noisy, and the tail's
     last conv starts at zero, so an untrained refiner returns the base exactly. That conv learns in the
     body group from the first step: held back with the head and tail until head_tail_start_step, it
@@ -263,7 +263,7 @@ class Generator(nn.Module):
 
     def forward(self, noisy: Tensor, features: Tensor | None = None, base: Tensor | None = None) -> Tensor:
         """`features` (normal, depth, albedo; 7 channels, then the noise map with config.noise_input) may be
-        omitted only in mode "none"; `base` is given exactly when the generator refines (config.base = "oidn")."""
+        omitted only in mode "none"; `base` is given exactly when the generator refines (config.refines)."""
         self._check_inputs(noisy, features, base)
         # What the output corrects: the noisy input, or a refiner's base (which sees the noisy input
         # through the encoder instead).

@@ -28,7 +28,8 @@ class ModelSettings:
     input_skip: bool = False      # admc option: the generator corrects its input (the authors': no skip)
     backbone: str = "residual"    # residual (the paper's full-resolution body) | unet (multi-scale, model/nets/unet.py)
     levels: int = 3               # unet: resolution halvings; `blocks` then run at 1/2^levels
-    base: str = "noisy"           # noisy (the paper's denoiser) | oidn (admc+oidn: corrects OIDN's output)
+    base: str = "noisy"           # noisy (the paper's denoiser) | oidn | oidn-fast (admc+oidn: corrects OIDN's
+                                  # output; oidn-fast runs OIDN fast on the specular branch: layout.BASE_QUALITIES)
     noise_input: bool = False     # the EncoderNet also reads the branch's per-pixel noise level, from the
                                   # renders' variance buffers (transforms.noise_forward): inputs need *_var layers
 
@@ -41,7 +42,7 @@ class ModelSettings:
         require(isinstance(self.noise_input, bool), "noise_input", f"must be true or false, got {self.noise_input!r}")
         require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
         require(self.base == "noisy" or self.mode in MODULATED_MODES, "base",
-                f"'oidn' needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
+                f"{self.base!r} needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
                 f"its EncoderNet), got mode {self.mode!r}")
 
     def generator_config(self) -> GeneratorConfig:

@@ -84,18 +84,20 @@ def load_init(init_from: Path | None, model: ModelSettings) -> tuple[dict, dict,
     init_from = Path(init_from)
     nets, saved_model, transform = read_networks(init_from)
     saved = dataclasses.asdict(ModelSettings.from_saved(saved_model))
-    if saved["base"] != model.base:
+    refiners = saved["base"] != "noisy" and model.base != "noisy"  # the same network, bases of another OIDN quality
+    if saved["base"] != model.base and not refiners:
         raise TrainingError(f"{init_from}: was trained with model.base = {saved['base']!r}, this config has "
                             f"model.base = {model.base!r}; fine-tune from weights of the same base (the shipped "
                             "ones for either base are found automatically when --init is left out)")
-    diff = differing_keys(saved, dataclasses.asdict(model))
+    diff = [key for key in differing_keys(saved, dataclasses.asdict(model)) if key != "base"]
+    start = f"{init_from}" + ("" if saved["base"] == model.base else f" (a refiner of model.base {saved['base']!r})")
     if diff == ["noise_input"] and model.noise_input:
         nets = {branch: {**state, "generator": with_noise_input(state["generator"], model)}
                 for branch, state in nets.items()}
-        return nets, transform, f"{init_from} (the noise input added, its weights starting at 0)"
+        return nets, transform, f"{start} (the noise input added, its weights starting at 0)"
     if diff:
         raise TrainingError(f"{init_from}: its model settings differ from the configured ones in {diff}")
-    return nets, transform, str(init_from)
+    return nets, transform, start
 
 
 def with_noise_input(state: dict, model: ModelSettings) -> dict:

@@ -66,11 +66,11 @@ class TrainResult:
 
 
 def _open_reader(run: _Run, split: str, transform: dict, branch: str, source: str) -> PatchReader:
-    """The rows of a split and branch, with their OIDN bases for a refiner (model.base = "oidn") and their
-    noise maps in the features for model.noise_input."""
+    """The rows of a split and branch, with their OIDN bases for a refiner (model.base "oidn" or "oidn-fast",
+    stored at its qualities) and their noise maps in the features for model.noise_input."""
     try:
         return PatchReader(run.store, split, expect_transform=transform, branch=branch,
-                           base=run.model.base == "oidn", noise=run.model.noise_input)
+                           base=None if run.model.base == "noisy" else run.model.base, noise=run.model.noise_input)
     except PatchStoreError as exc:
         raise PatchStoreError(f"refused for {source}: {exc}") from None
 

@@ -5,9 +5,10 @@ the same reference crop. Selection favours informative regions (KPCN-style impor
 candidates are drawn uniformly and kept with probability proportional to their relative noise
 plus reference edge strength, with a floor so flat regions still appear. Splits are assigned per
 scene by a stable hash, never per patch, and never move when the corpus grows. With `oidn_base`,
-OIDN denoises each whole noisy image per branch (as inference does) and its crops are stored as the
-rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each branch's noise map (from the
-render's variance buffer: transforms.noise_forward) is stored per row, what model.noise_input reads.
+OIDN denoises each whole noisy image per branch (as inference does) at the qualities of `refiner_base`
+and its crops are stored as the rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each
+branch's noise map (from the render's variance buffer: transforms.noise_forward) is stored per row,
+what model.noise_input reads.
 """
 from __future__ import annotations
 
@@ -92,9 +93,10 @@ def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
 
 
 def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_specular: np.ndarray | None,
-                  oidn_base: bool, noise_maps: bool = False) -> dict[str, np.ndarray]:
+                  refiner_base: str | None, noise_maps: bool = False) -> dict[str, np.ndarray]:
     """One spp level's whole images in the store's transforms, (H, W, C) per row array. `ref_diffuse` is
-    linear; `ref_specular` is already transformed (it does not depend on the level), None without specular.
+    linear; `ref_specular` is already transformed (it does not depend on the level), None without specular;
+    `refiner_base` the refining base whose OIDN bases to add, None for none.
 
     The reference diffuse is demodulated by this level's own albedo, the one inference has, so
     expm1(output) * (noisy albedo + eps) targets the reference radiance exactly even where a low-spp
@@ -111,8 +113,8 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
         images["noise_diffuse"] = tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], albedo)
         if ref_specular is not None:
             images["noise_specular"] = tf.specular_noise(layers["specular_var"], layers["specular"])
-    if oidn_base:
-        bases = oidn_bases(layers)
+    if refiner_base is not None:
+        bases = oidn_bases(layers, refiner_base)
         images["base_diffuse"] = tf.diffuse_forward(bases["diffuse"], albedo)
         if ref_specular is not None and "specular" in bases:
             images["base_specular"] = tf.specular_forward(bases["specular"])
@@ -121,7 +123,7 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
 
 def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
-               seed: int, oidn_base: bool = False, noise_maps: bool = False) -> dict:
+               seed: int, oidn_base: bool = False, refiner_base: str = "oidn", noise_maps: bool = False) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}."""
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
@@ -139,8 +141,8 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
-        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular, oidn_base,
-                                         noise_maps).items():
+        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular,
+                                         refiner_base if oidn_base else None, noise_maps).items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
         rows.setdefault("origin", []).append(origins)
@@ -157,7 +159,7 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
         "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
         "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
         "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
-        **({"base": describe_oidn()} if oidn_base else {}),
+        **({"base": describe_oidn(refiner_base)} if oidn_base else {}),
     })
     return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
             "has_specular": has_specular, "has_base": oidn_base, **({"has_noise": True} if noise_maps else {}),

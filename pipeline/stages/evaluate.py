@@ -83,7 +83,7 @@ def default_models(cfg: Config) -> list[Path]:
     """The config's own model (`default_weights`: its finetune run, else pretrain run, else shipped
     weights), then the same for the other base where such weights exist: by default Table 1 shows
     admc and admc+oidn side by side."""
-    other = "oidn" if cfg.model.base == "noisy" else "noisy"
+    other = cfg.tile.refiner_base if cfg.model.base == "noisy" else "noisy"
     paths = [default_weights(cfg)]
     try:
         paths.append(default_weights(replace(cfg, model=replace(cfg.model, base=other))))

@@ -11,7 +11,8 @@ import zarr
 from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
-from admc.common.layout import BRANCHES
+from admc.common.layout import BASE_QUALITIES, BRANCHES
+from admc.model.inference.oidn_base import stored_quality
 from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, NOISE_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
                                         _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
                                         list_scenes)
@@ -23,14 +24,15 @@ class PatchReader:
     Row i of the "diffuse" branch pairs noisy_diffuse, features and the row's reference crop;
     the "specular" branch indexes only scenes that have specular arrays. Index arrays are loaded
     once per scene; each item then reads exactly one chunk of each image array. Picklable (for
-    DataLoader workers): array handles are reopened lazily in each process. With `base`, items also
-    carry the row's stored OIDN output ("base", for model.base = "oidn"), and every scene must have it.
+    DataLoader workers): array handles are reopened lazily in each process. With `base` (a refining base,
+    layout.BASE_QUALITIES), items also carry the row's stored OIDN output ("base"), and every scene must
+    have it at the quality that base names for this branch.
     With `noise`, the branch's noise map is appended to "features" as their last channel (what a
     model.noise_input generator reads), and every scene must have it.
     """
 
     def __init__(self, path: str | os.PathLike, split: str, expect_transform: dict | None = None,
-                 branch: str = "diffuse", base: bool = False, noise: bool = False):
+                 branch: str = "diffuse", base: str | None = None, noise: bool = False):
         _check_split(split)
         if branch not in BRANCHES:
             raise PatchStoreError(f"branch {branch!r}: must be one of {BRANCHES}")
@@ -61,6 +63,7 @@ class PatchReader:
                 if branch == "specular" and not group.attrs["has_specular"]:
                     continue
                 has_base = group.attrs.get("has_base", False)
+                quality = stored_quality(group.attrs.get("base", {}), branch)
                 has_noise = group.attrs.get("has_noise", False)
             if noise and not has_noise:
                 raise PatchStoreError(
@@ -69,9 +72,14 @@ class PatchReader:
                     "--set model.noise_input=true (or tile.noise_maps=true): it re-tiles from the cached renders")
             if base and not has_base:
                 raise PatchStoreError(
-                    f"patch store {self.path}: scene {split}/{scene} has no OIDN bases, which model.base = 'oidn' "
+                    f"patch store {self.path}: scene {split}/{scene} has no OIDN bases, which model.base {base!r} "
                     "trains on; set tile.oidn_base = true and run `admc-pipe dataset` (it re-tiles from the cached "
                     "renders)")
+            if base and quality != BASE_QUALITIES[base][branch]:
+                raise PatchStoreError(
+                    f"patch store {self.path}: scene {split}/{scene} holds {branch} OIDN bases of quality {quality!r}, "
+                    f"model.base {base!r} trains on {BASE_QUALITIES[base][branch]!r} ones; tile with "
+                    f"tile.refiner_base = {base!r} into a store of its own (tile.store)")
             self.scenes.append(scene)
             for name, out in (("spp", self._spp), ("crop", self._crop)):
                 with _reading(self.path, split, scene, name):
