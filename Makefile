@@ -12,7 +12,7 @@ setup:
 
 demo: dataset               ## the whole product on the embedded default corpus: dataset, fine-tune both models, Table 1
 	$(ADMC) train --stage finetune $(CFGARG) $(ARGS)
-	$(ADMC) train --stage finetune --set model.base=oidn-fast $(CFGARG) $(ARGS)
+	$(ADMC) train --stage finetune --set model.base=oidn $(CFGARG) $(ARGS)
 	$(ADMC) eval $(CFGARG) $(ARGS)
 
 render: setup               ## render the scene corpus to EXR (cached, resumable)
