@@ -9,8 +9,8 @@ import pyoidn
 import pytest
 
 from admc.common import oidn
-from admc.common.layout import BASE_QUALITIES
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, LAYERS, RADIANCE_MAX, VARIANCE_MAX, sanitize
+from admc.common.layout import BASE_QUALITIES
 from admc.model.inference.oidn_base import oidn_bases
 from admc.model.transforms import transform_spec
 from admc.pipeline.evaluation.baselines import OidnDenoiser

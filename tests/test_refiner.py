@@ -121,6 +121,14 @@ def test_bases_of_another_quality_are_refused_per_branch_naming_the_scene_and_th
         PatchReader(store, "train", branch="specular", base=other)
 
 
+def test_scenes_tiled_before_the_fast_bases_read_as_high_on_both_branches():
+    from admc.stores.patches.reader import stored_quality
+
+    old = {"method": "oidn", "quality": "high", "per_branch": True}  # what tiling recorded until then
+    assert [stored_quality(old, branch) for branch in ("diffuse", "specular")] == ["high", "high"]
+    assert stored_quality({"quality": BASE_QUALITIES["oidn-fast"]}, "specular") == "fast"
+
+
 def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_with_bases, tmp_path):
     cfg, store = store_with_bases
     model, settings = preset("default")

@@ -27,13 +27,6 @@ def describe(base: str) -> dict:
             "pyoidn": version("pyoidn")}
 
 
-def stored_quality(description: dict, branch: str) -> str | None:
-    """A branch's OIDN quality in a store's `describe` record (stores tiled before fast bases say one
-    quality for both)."""
-    quality = description.get("quality")
-    return quality.get(branch) if isinstance(quality, dict) else quality
-
-
 def oidn_bases(clean: dict[str, np.ndarray], base: str) -> dict[str, np.ndarray]:
     """{"diffuse": ..., ["specular": ...]} linear HDR (H, W, 3) float32 from sanitised layers
     (admc.common.buffers.sanitize: finite, radiance >= 0, albedo in [0, 1], normals in [-1, 1]), each

@@ -12,10 +12,16 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BASE_QUALITIES, BRANCHES
-from admc.model.inference.oidn_base import stored_quality
 from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, NOISE_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
                                         _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
                                         list_scenes)
+
+
+def stored_quality(description: dict, branch: str) -> str | None:
+    """A branch's OIDN quality in a scene's record of its bases (oidn_base.describe); scenes tiled before
+    the fast bases record one quality for both branches."""
+    quality = description.get("quality")
+    return quality.get(branch) if isinstance(quality, dict) else quality
 
 
 class PatchReader:
