@@ -18,16 +18,17 @@ import numpy as np
 
 from admc.common import oidn
 from admc.common.buffers import sanitize
+from admc.common.layout import BASE_QUALITIES
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.oidn_base import oidn_bases
 
-QUALITY = "high"  # the quality this comparison was made at (the refiner's bases then)
+BASE = "oidn"  # the refiner's bases this comparison was made for: OIDN high on both branches
 from admc.stores.exr import read_exr
 
 
 def combined(layers: dict) -> np.ndarray:
     color = layers["diffuse"] + layers.get("specular", 0.0)
-    return oidn.denoise(color, layers["albedo"], layers["normal"], quality=QUALITY)
+    return oidn.denoise(color, layers["albedo"], layers["normal"], quality=BASE_QUALITIES[BASE]["diffuse"])
 
 
 def main() -> None:
@@ -48,7 +49,7 @@ def main() -> None:
             images = {"combined": combined(layers)}
             seconds["combined"] += time.perf_counter() - start
             start = time.perf_counter()
-            bases = oidn_bases(layers, QUALITY)
+            bases = oidn_bases(layers, BASE)
             images["per branch"] = bases["diffuse"] + bases.get("specular", 0.0)
             seconds["per branch"] += time.perf_counter() - start
             for way, image in images.items():

@@ -359,8 +359,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
     stored = config.tile.refiner_base
     if base not in ("noisy", stored):  # the message names each base's qualities, which "noisy" has not
         raise ConfigError(f"config key 'tile.refiner_base': is {stored!r}, but model.base = {base!r} trains on the "
-                          f"bases of {base!r} (OIDN {_qualities(base)}; the store's: {_qualities(stored)}): set model.base = {stored!r}, or "
-                          f"tile.refiner_base = {base!r} with a tile.store of its own")
+                          f"bases of {base!r} (OIDN {_qualities(base)}; the store's: {_qualities(stored)}): "
+                          f"set model.base = {stored!r}, or tile.refiner_base = {base!r} with a tile.store of its own")
     return config
 
 

@@ -4,8 +4,8 @@ Crops are chosen once per scene and shared by every spp level, so each noisy row
 the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
 candidates are drawn uniformly and kept with probability proportional to their relative noise
 plus reference edge strength, with a floor so flat regions still appear. Splits are assigned per
-scene by a stable hash, never per patch, and never move when the corpus grows. With `oidn_base`,
-OIDN denoises each whole noisy image per branch (as inference does) at the qualities of `refiner_base`
+scene by a stable hash, never per patch, and never move when the corpus grows. With `refiner_base`,
+OIDN denoises each whole noisy image per branch (as inference does) at the qualities of that base
 and its crops are stored as the rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each
 branch's noise map (from the render's variance buffer: transforms.noise_forward) is stored per row,
 what model.noise_input reads.
@@ -123,8 +123,9 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
 
 def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
-               seed: int, oidn_base: bool = False, refiner_base: str = "oidn", noise_maps: bool = False) -> dict:
-    """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}."""
+               seed: int, refiner_base: str | None = None, noise_maps: bool = False) -> dict:
+    """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}. `refiner_base`: the
+    refining base whose OIDN bases to store (None: none)."""
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
 
@@ -141,8 +142,8 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
-        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular,
-                                         refiner_base if oidn_base else None, noise_maps).items():
+        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular, refiner_base,
+                                         noise_maps).items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
         rows.setdefault("origin", []).append(origins)
@@ -159,8 +160,9 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
         "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
         "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
         "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
-        **({"base": describe_oidn(refiner_base)} if oidn_base else {}),
+        **({"base": describe_oidn(refiner_base)} if refiner_base is not None else {}),
     })
     return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
-            "has_specular": has_specular, "has_base": oidn_base, **({"has_noise": True} if noise_maps else {}),
+            "has_specular": has_specular, "has_base": refiner_base is not None,
+            **({"has_noise": True} if noise_maps else {}),
             "sanitized": sanitized, "fp16_clamped": clamped}

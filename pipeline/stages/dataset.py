@@ -81,7 +81,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "scene_hash": levels["reference"].params["scene_hash"],
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
                         "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed,
-                        "oidn_base": cfg.tile.oidn_base, "refiner_base": cfg.tile.refiner_base,
+                        "refiner_base": cfg.tile.refiner_base if cfg.tile.oidn_base else None,
                         **({"noise_maps": True} if noise_maps(cfg) else {})},
                     source=render.scene_source(spec))
         if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled, noise_maps(cfg)):
