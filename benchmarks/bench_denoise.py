@@ -5,13 +5,14 @@ OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 engine (eval.engine of configs/default.toml) in its default precision, the lines
 `admc/oidn time ratio: X` (small) and `admc+oidn/oidn time ratio: X` (small+oidn) against OIDN `high`.
 
-    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-unet]
+    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-slim small-unet]
         [--engines torch onnxruntime openvino] [--precisions float32 bfloat16] [--baselines oidn optix]
         [--device cpu|cuda] [--tile N] [--repeats 3] [--warmup 1] [--threads N] [--compile]
 
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner on the default bases (tile.refiner_base), whose call runs OIDN per branch first;
-small-unet is the small model on the multi-scale body (model.backbone = "unet"), whose tiles need a
+small-slim is the small model with one CFM layer per residual block and one-layer condition nets
+(model.cfm_per_block = model.condition_layers = 1); small-unet is the small model on the multi-scale body (model.backbone = "unet"), whose tiles need a
 116-px halo. Each timed run
 is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the
 generators' share (synchronised: on CUDA it ends with the copy back to the host), "total" adds
@@ -52,6 +53,7 @@ CONFIGS = {
     "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model.generator_config(),
     "small": SMALL.generator_config(),
     "small+oidn": replace(SMALL, base=DEFAULTS.tile.refiner_base).generator_config(),
+    "small-slim": replace(SMALL, cfm_per_block=1, condition_layers=1).generator_config(),
     "small-unet": replace(SMALL, backbone="unet").generator_config(),
 }
 

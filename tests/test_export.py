@@ -105,3 +105,21 @@ def test_weights_without_the_noise_input_export_as_before(tmp_path):
     export_onnx(WEIGHTS_DIR / "admc-small-pretrained.pt", tmp_path / "onnx")
     manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
     assert not {"noise_input", "noise_std_unit"} & set(manifest) and "noise" not in manifest["inputs"]
+
+
+def test_a_slim_generator_exports_and_equals_torch_in_onnx_runtime():
+    """model.cfm_per_block = model.condition_layers = 1 (one CFM per block, one-conv condition nets) exports
+    like the paper's layout; same tolerance (fewer convs on the chain, the same bound holds)."""
+    from admc.model.inference.export import generator_graph
+    from admc.model.nets.generator import Generator, GeneratorConfig
+
+    torch.manual_seed(0)
+    generator = Generator(GeneratorConfig(channels=16, blocks=4, cond_channels=16, encoder_channels=32,
+                                          input_skip=True, cfm_per_block=1, condition_layers=1)).eval()
+    for p in generator.parameters():  # larger than the init's, so every layer changes the output
+        torch.nn.init.normal_(p, std=0.1)
+    session = onnxruntime.InferenceSession(generator_graph(generator), providers=["CPUExecutionProvider"])
+    inputs = log_inputs(generator, 45, 70)
+    with torch.no_grad():
+        expected = generator(*(torch.from_numpy(a) for a in inputs.values())).numpy()
+    assert np.abs(session.run(None, inputs)[0] - expected).max() <= FLOAT32_LOG_TOLERANCE

@@ -245,3 +245,97 @@ def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_t
             want = before(noisy, feats, base)
             got = after(noisy, torch.cat([feats, torch.rand(1, 1, 40, 40, dtype=torch.float64)], dim=1), base)
         torch.testing.assert_close(got, want, rtol=0, atol=WIDEN_ATOL)
+
+
+@pytest.mark.parametrize("cfm_per_block, condition_layers", [(1, 2), (2, 1), (1, 1)])
+def test_slimmer_generators_have_the_layers_they_claim_and_train(cfm_per_block, condition_layers):
+    """model.cfm_per_block / model.condition_layers: fewer full-resolution 1x1 convs, the same receptive field."""
+    torch.manual_seed(0)
+    full = Generator(GeneratorConfig(**TINY))
+    g = Generator(GeneratorConfig(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers))
+    cfms = [m for m in g.modules() if isinstance(m, CFMLayer)]
+    assert len(cfms) == TINY["blocks"] * cfm_per_block + 1  # the blocks' and the body's last
+    for cfm in cfms:
+        for net in (cfm.scale, cfm.shift):
+            assert sum(isinstance(m, torch.nn.Conv2d) for m in net.modules()) == condition_layers
+    assert g.receptive_radius() == full.receptive_radius()
+    noisy, features, clean = torch.rand(2, 3, 17, 19), torch.rand(2, 7, 17, 19), torch.rand(2, 3, 17, 19)
+    loss, _ = generator_loss(g(noisy, features), clean, None, adversarial=False)
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in g.parameters())
+
+
+@pytest.mark.parametrize("key, value", [("cfm_per_block", 3), ("condition_layers", 0)])
+def test_slimness_settings_outside_one_or_two_are_refused_naming_the_key(key, value):
+    from admc.model.nets.settings import ModelSettings
+
+    with pytest.raises(ValueError, match=rf"^{key}: must be 1 or 2, got {value}"):
+        ModelSettings(**{key: value}).check()
+    with pytest.raises(ValueError, match=rf"GeneratorConfig.{key}: must be 1 or 2"):
+        GeneratorConfig(**{key: value})
+
+
+# Slimming by least squares (model/training/slimming.py) in float64. Where the slim network can compute the
+# full one exactly, the fit recovers it up to the solver's rounding: the normal equations of at most
+# 145 unknowns over 2 x 24 x 24 pixels, condition number well under 1e6 for random inputs, times eps64
+# (2.2e-16), then a few layers of sums of <= 144 products of magnitude ~1: far below 1e-8.
+SLIM_ATOL = 1e-8
+
+
+def _affine_condition_nets(g: Generator) -> None:
+    """Make every two-layer condition net affine on inputs in [0, 1): a first layer with positive weights
+    and bias, so the LeakyReLU between the two layers passes everything through."""
+    with torch.no_grad():
+        for cfm in (m for m in g.modules() if isinstance(m, CFMLayer)):
+            for net in (cfm.scale, cfm.shift):
+                net[0].weight.uniform_(0.0, 0.5)
+                net[0].bias.uniform_(0.1, 0.5)
+
+
+def _slim_pair(cfm_per_block: int, condition_layers: int, encoder_nonnegative: bool):
+    from admc.model.training.slimming import slim_generator
+
+    torch.manual_seed(0)
+    full = Generator(GeneratorConfig(**TINY)).double()
+    for p in full.parameters():
+        torch.nn.init.normal_(p, std=0.2)
+    _affine_condition_nets(full)
+    if encoder_nonnegative:  # condition maps >= 0: the affine condition nets see only inputs they pass through
+        full.encoder.layers.append(torch.nn.ReLU())
+    slim = Generator(GeneratorConfig(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers)).double()
+    if encoder_nonnegative:
+        slim.encoder.layers.append(torch.nn.ReLU())
+    batch = {"noisy": torch.rand(2, 3, 24, 24, dtype=torch.float64),
+             "features": torch.rand(2, 7, 24, 24, dtype=torch.float64)}
+    slim_generator(full, slim, batch, seed=0)
+    return full, slim, batch
+
+
+def test_slimming_recovers_a_network_the_slim_one_can_compute_exactly():
+    """One-layer condition nets fitted to two-layer nets that are affine on the condition maps they see
+    compute the same function."""
+    full, slim, batch = _slim_pair(cfm_per_block=2, condition_layers=1, encoder_nonnegative=True)
+    with torch.no_grad():
+        torch.testing.assert_close(slim(batch["noisy"], batch["features"]), full(batch["noisy"], batch["features"]),
+                                   rtol=0, atol=SLIM_ATOL)
+
+
+def test_slimming_a_block_refits_its_second_conv_to_the_full_blocks_output():
+    """Dropping each block's second CFM: the refitted second conv makes the slim network closer to the full
+    one than copying the conv would, and equal to it where that CFM was the identity."""
+    full, slim, batch = _slim_pair(cfm_per_block=1, condition_layers=2, encoder_nonnegative=False)
+    copied = Generator(slim.config).double()
+    copied.load_state_dict(full.state_dict(), strict=False)
+    inputs = (batch["noisy"], batch["features"])
+    with torch.no_grad():
+        want = full(*inputs)
+        assert (slim(*inputs) - want).abs().mean() < 0.5 * (copied(*inputs) - want).abs().mean()
+        for block in full.blocks:  # the second CFM now multiplies by 1 and adds 0
+            for net in (block.cfm[1].scale, block.cfm[1].shift):
+                net[-1].weight.zero_()
+                net[-1].bias.zero_()
+    full2, slim2 = full, Generator(slim.config).double()
+    from admc.model.training.slimming import slim_generator
+    slim_generator(full2, slim2, batch, seed=0)
+    with torch.no_grad():
+        torch.testing.assert_close(slim2(*inputs), full2(*inputs), rtol=0, atol=SLIM_ATOL)

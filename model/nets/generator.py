@@ -43,6 +43,8 @@ class GeneratorConfig:
     levels: int = 3           # unet: times the resolution is halved (blocks then run at 1/2^levels)
     base: str = "noisy"       # "oidn", "oidn-fast": out = ReLU(OIDN + tail), the tail's last conv starting at 0
     noise_input: bool = False  # features carry the branch's noise map as an 8th channel (transforms.noise_forward)
+    cfm_per_block: int = 2     # 2: CFM before both convs of a residual block (the paper's); 1: before the first only
+    condition_layers: int = 2  # convs per CFM condition net: 2 (the paper's, 1x1 -> LReLU -> 1x1) or 1 (one 1x1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -58,6 +60,9 @@ class GeneratorConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"GeneratorConfig.{name}: must be a positive int, got {value!r}")
+        for name in ("cfm_per_block", "condition_layers"):
+            if type(getattr(self, name)) is not int or getattr(self, name) not in (1, 2):
+                raise ValueError(f"GeneratorConfig.{name}: must be 1 or 2, got {getattr(self, name)!r}")
 
     @property
     def modulated(self) -> bool:
@@ -74,8 +79,12 @@ class GeneratorConfig:
         return self.base != "noisy"
 
 
-def _condition_net(cond_channels: int, channels: int) -> nn.Sequential:
-    """The two-layer conv that maps the condition map to one modulation (gamma or beta) map."""
+def _condition_net(cond_channels: int, channels: int, layers: int) -> nn.Module:
+    """The 1x1 conv net that maps the condition map to one modulation (gamma or beta) map: the paper's two
+    layers, or one (at full resolution they are a third of the small generator's time in OpenVINO:
+    docs/results/2026-12-03-slim-generator.md)."""
+    if layers == 1:
+        return nn.Conv2d(cond_channels, channels, 1)
     return nn.Sequential(
         nn.Conv2d(cond_channels, cond_channels, 1),
         nn.LeakyReLU(0.1, inplace=True),
@@ -90,12 +99,13 @@ class CFMLayer(nn.Module):
     which also makes a freshly initialised, small-weight network start near the identity).
     """
 
-    def __init__(self, channels: int, cond_channels: int, use_scale: bool = True, use_shift: bool = True) -> None:
+    def __init__(self, channels: int, cond_channels: int, use_scale: bool = True, use_shift: bool = True,
+                 layers: int = 2) -> None:
         super().__init__()
         if not (use_scale or use_shift):
             raise ValueError("CFMLayer needs a scale net, a shift net or both")
-        self.scale = _condition_net(cond_channels, channels) if use_scale else None
-        self.shift = _condition_net(cond_channels, channels) if use_shift else None
+        self.scale = _condition_net(cond_channels, channels, layers) if use_scale else None
+        self.shift = _condition_net(cond_channels, channels, layers) if use_shift else None
 
     def forward(self, x: Tensor, cond: Tensor) -> Tensor:
         if self.scale is not None:
@@ -106,9 +116,10 @@ class CFMLayer(nn.Module):
 
 
 class ResidualBlock(nn.Module):
-    """[CFM] -> conv3x3 -> ReLU -> [CFM] -> conv3x3, out = x + f. No batch norm (as in EDSR/SFTGAN)."""
+    """[CFM] -> conv3x3 -> ReLU -> [CFM] -> conv3x3, out = x + f. No batch norm (as in EDSR/SFTGAN).
+    Given one CFM layer, only the first conv's input is modulated."""
 
-    def __init__(self, channels: int, cfm: tuple[CFMLayer, CFMLayer] | None) -> None:
+    def __init__(self, channels: int, cfm: tuple[CFMLayer, ...] | None) -> None:
         super().__init__()
         self.cfm = nn.ModuleList(cfm) if cfm is not None else None
         self.conv1 = conv3x3(channels, channels)
@@ -118,7 +129,7 @@ class ResidualBlock(nn.Module):
     def forward(self, x: Tensor, cond: Tensor | None) -> Tensor:
         f = self.cfm[0](x, cond) if self.cfm is not None else x
         f = self.relu(self.conv1(f))
-        f = self.cfm[1](f, cond) if self.cfm is not None else f
+        f = self.cfm[1](f, cond) if self.cfm is not None and len(self.cfm) > 1 else f
         return x + self.conv2(f)
 
 
@@ -208,17 +219,20 @@ class Generator(nn.Module):
 
     def _build_body(self) -> None:
         c = self.config.channels
-        self.blocks = nn.ModuleList(ResidualBlock(c, self._cfm_pair(c)) for _ in range(self.config.blocks))
+        self.blocks = nn.ModuleList(ResidualBlock(c, self._block_cfms(c)) for _ in range(self.config.blocks))
         self.body_cfm = self._cfm(c) if self.config.modulated else None
         self.body_conv = conv3x3(c, c)
 
     def _cfm(self, channels: int) -> CFMLayer:
         mode = self.config.mode
-        return CFMLayer(channels, self.config.cond_channels,
-                        use_scale=mode in ("cfm", "scale"), use_shift=mode in ("cfm", "shift"))
+        return CFMLayer(channels, self.config.cond_channels, use_scale=mode in ("cfm", "scale"),
+                        use_shift=mode in ("cfm", "shift"), layers=self.config.condition_layers)
 
-    def _cfm_pair(self, channels: int) -> tuple[CFMLayer, CFMLayer] | None:
-        return (self._cfm(channels), self._cfm(channels)) if self.config.modulated else None
+    def _block_cfms(self, channels: int) -> tuple[CFMLayer, ...] | None:
+        """A residual block's CFM layers (config.cfm_per_block of them), or None without modulation."""
+        if not self.config.modulated:
+            return None
+        return tuple(self._cfm(channels) for _ in range(self.config.cfm_per_block))
 
     def receptive_radius(self) -> int:
         """How many pixels away an input can still change an output pixel (the denoiser's tile halo and

@@ -32,6 +32,8 @@ class ModelSettings:
                                   # output; oidn-fast runs OIDN fast on the specular branch: layout.BASE_QUALITIES)
     noise_input: bool = False     # the EncoderNet also reads the branch's per-pixel noise level, from the
                                   # renders' variance buffers (transforms.noise_forward): inputs need *_var layers
+    cfm_per_block: int = 2        # CFM layers per residual block: 2 (the paper's) | 1 (before its first conv only)
+    condition_layers: int = 2     # 1x1 convs per CFM condition net: 2 (the paper's) | 1
 
     def check(self) -> None:
         positive_ints(self, ("channels", "blocks", "cond_channels", "encoder_channels", "critic_channels", "levels"))
@@ -40,6 +42,8 @@ class ModelSettings:
         require(self.critic_norm in NORMS, "critic_norm", f"{self.critic_norm!r} is not one of {NORMS}")
         require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
         require(isinstance(self.noise_input, bool), "noise_input", f"must be true or false, got {self.noise_input!r}")
+        for key in ("cfm_per_block", "condition_layers"):
+            require(type(getattr(self, key)) is int and getattr(self, key) in (1, 2), key, f"must be 1 or 2, got {getattr(self, key)!r}")
         require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
         require(self.base == "noisy" or self.mode in MODULATED_MODES, "base",
                 f"{self.base!r} needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
@@ -49,7 +53,8 @@ class ModelSettings:
         return GeneratorConfig(channels=self.channels, blocks=self.blocks, cond_channels=self.cond_channels,
                                encoder_channels=self.encoder_channels, mode=self.mode, input_skip=self.input_skip,
                                backbone=self.backbone, levels=self.levels, base=self.base,
-                               noise_input=self.noise_input)
+                               noise_input=self.noise_input, cfm_per_block=self.cfm_per_block,
+                               condition_layers=self.condition_layers)
 
     @classmethod
     def from_saved(cls, saved: dict) -> "ModelSettings":

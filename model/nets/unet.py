@@ -35,12 +35,12 @@ class UNetGenerator(Generator):
     def _build_body(self) -> None:
         c, levels = self.config.channels, self.config.levels
         widths = [c * (level + 1) for level in range(levels + 1)]
-        self.down_blocks = nn.ModuleList(ResidualBlock(w, self._cfm_pair(w)) for w in widths[:-1])
+        self.down_blocks = nn.ModuleList(ResidualBlock(w, self._block_cfms(w)) for w in widths[:-1])
         self.downs = nn.ModuleList(conv3x3(a, b, stride=2) for a, b in zip(widths, widths[1:]))
-        self.bottom = nn.ModuleList(ResidualBlock(widths[-1], self._cfm_pair(widths[-1]))
+        self.bottom = nn.ModuleList(ResidualBlock(widths[-1], self._block_cfms(widths[-1]))
                                     for _ in range(self.config.blocks))
         self.ups = nn.ModuleList(conv3x3(b, a) for a, b in zip(widths, widths[1:]))
-        self.up_blocks = nn.ModuleList(ResidualBlock(w, self._cfm_pair(w)) for w in widths[:-1])
+        self.up_blocks = nn.ModuleList(ResidualBlock(w, self._block_cfms(w)) for w in widths[:-1])
 
     def receptive_radius(self) -> int:
         """An upper bound, in full-resolution pixels, summed along the longest path.

@@ -21,18 +21,20 @@ import warnings
 from collections.abc import Iterator
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from admc.stores.checkpoints import load_network
 
 from ..nets.backbones import build_generator
 from ..nets.critic import Critic
-from ..nets.losses import critic_loss, generator_loss
+from ..nets.losses import critic_loss, generator_loss, log_floor
 from ..nets.settings import ModelSettings
 from ..precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
 from .settings import TrainSettings
+from .teacher import load_teacher
 from .validation import linear_scale
 
 ADAM_BETAS = (0.9, 0.999)
@@ -80,6 +82,7 @@ class BranchTrainer:
                                                                       settings.lr_gamma)
                            for name, opt in self.optimizers.items()}
         self.average = self._copy_of_generator() if settings.ema else None
+        self.teacher = load_teacher(settings.distill_from, branch, model, device) if settings.distill_from else None
         self.average_updates = 0
         self.batches = 0          # batches consumed from the data stream (its resume position)
         self.bad_total = 0
@@ -143,6 +146,12 @@ class BranchTrainer:
             loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
                                          adversarial, s.l1_floor, s.ssim_weight,
                                          linear_scale(batch["features"], self.branch) if s.ssim_weight else None)
+            if self.teacher is not None:
+                with torch.no_grad():
+                    taught = self.teacher(batch["noisy"], batch["features"], batch.get("base"))
+                distill = F.l1_loss(log_floor(fake.float(), s.l1_floor), log_floor(taught.float(), s.l1_floor))
+                parts["distill"] = distill.detach()
+                loss = loss + s.distill_weight * distill
         parts["generator_loss"] = loss.detach()
         if not agree(bool(torch.isfinite(loss)), self.device):
             return False, parts

@@ -44,6 +44,9 @@ class TrainSettings:
     l1_weight: float = 1.0
     l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
     ssim_weight: float = 0.0              # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
+    distill_from: str = ""                # weights or checkpoint of a teacher generator ("" = none): the loss also
+                                          # compares the output with the teacher's on the same input (teacher.py)
+    distill_weight: float = 1.0           # weight of that term (L1 on log(v + l1_floor), as the reference's)
     ema: float = 0.0                      # validate and ship an exponential moving average of the generator's
                                           # weights with this decay per step (branch.py); 0 = the weights themselves
     adv_weight: float = 5e-3
@@ -74,7 +77,8 @@ class TrainSettings:
         for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
-        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z"):
+        require(isinstance(self.distill_from, str), "distill_from", f"must be a path or \"\", got {self.distill_from!r}")
+        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z", "distill_weight"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
         require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema",
