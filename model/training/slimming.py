@@ -50,15 +50,12 @@ def fit_conv3x3(conv: nn.Conv2d, inputs: Tensor, targets: Tensor, index: Tensor)
 
 
 def fit_cfm(slim: CFMLayer, full: CFMLayer, cond: Tensor, index: Tensor) -> None:
-    """Copy or fit (one-layer from two-layer) each condition net of a CFM layer."""
+    """Fit each one-layer condition net of `slim` that replaces a two-layer one of `full` (condition nets of
+    the same shape were copied with the other shared layers)."""
     for name in ("scale", "shift"):
         slim_net, full_net = getattr(slim, name), getattr(full, name)
-        if slim_net is None:
-            continue
         if isinstance(slim_net, nn.Conv2d) and not isinstance(full_net, nn.Conv2d):
             fit_condition_net(slim_net, full_net, cond, index)
-        else:
-            slim_net.load_state_dict(full_net.state_dict())
 
 
 @torch.no_grad()
