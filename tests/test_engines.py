@@ -7,7 +7,7 @@ from test_export import FLOAT32_LOG_TOLERANCE
 from test_inference import render_layers
 
 from admc.model.inference.denoiser import load_denoiser
-from admc.model.inference.engines import EngineError, OnnxGenerator
+from admc.model.inference.engines import OPENVINO_SIZES, EngineError, OnnxGenerator
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
 from admc.pipeline.weights import WEIGHTS_DIR
@@ -100,3 +100,28 @@ def test_float32_engines_give_the_torch_result_for_noise_input_weights(engine, s
     moved = log_branches(load_denoiser(weights, **options)(quieter), layers)
     assert np.abs(moved - log_branches(reference, layers)).max() > 2 * FLOAT32_LOG_TOLERANCE
     assert np.abs(log_branches(denoiser(quieter), layers) - moved).max() <= FLOAT32_LOG_TOLERANCE
+
+
+def test_openvino_compiles_for_each_size_it_sees_and_keeps_the_last_few():
+    """Each size gets a graph compiled for it (faster than the graph of any size) with torch's result; the
+    oldest beyond OPENVINO_SIZES is let go, and a size seen again is reused."""
+    exact = load_denoiser(SHIPPED, dtype=torch.float32).generators["diffuse"]
+    generator = load_denoiser(SHIPPED, engine="openvino", dtype=torch.float32).generators["diffuse"]
+    sizes = [(8 + i, 12 + 2 * i) for i in range(OPENVINO_SIZES + 1)]
+    generator_rng = torch.Generator().manual_seed(5)
+    for height, width in sizes + sizes[-1:]:
+        noisy = torch.rand((1, 3, height, width), generator=generator_rng) * 4
+        features = torch.rand((1, 7, height, width), generator=generator_rng)
+        with torch.inference_mode():
+            reference = exact(noisy, features)
+        assert (generator(noisy, features) - reference).abs().max() <= FLOAT32_LOG_TOLERANCE
+        assert (generator.one_off(noisy, features) - reference).abs().max() <= FLOAT32_LOG_TOLERANCE
+    assert generator.compiled_sizes == sizes[1:]
+
+
+def test_the_dark_pass_compiles_nothing_for_its_crop():
+    """The dark pass's crop is a size of its own per image: it runs in the graph of any size."""
+    layers = dark_layers()
+    denoiser = load_denoiser(SHIPPED, engine="openvino", dark_pass=True)
+    assert denoiser(layers).dark_share > 0
+    assert all(g.compiled_sizes == [layers["diffuse"].shape[:2]] for g in denoiser.generators.values())

@@ -459,3 +459,21 @@ def test_noise_input_weights_tile_and_run_the_dark_pass_and_ensemble_like_the_wh
     quieter = {**layers, "diffuse_var": layers["diffuse_var"] * 1e-4}
     plain = FullImageDenoiser(*strong, tile=64, dtype=inference_dtype)
     assert np.abs(plain(quieter).diffuse - plain(layers).diffuse).max() > 0
+
+
+class NonFiniteAt(nn.Module):
+    """A real module that returns its input with a NaN, +inf and -inf at three pixels."""
+
+    def forward(self, noisy, features):
+        out = noisy.clone()
+        out[0, 0, 1, 1], out[0, 1, 2, 3], out[0, 2, 4, 5] = float("nan"), float("inf"), float("-inf")
+        return out
+
+
+def test_non_finite_network_outputs_are_counted_and_set_to_zero():
+    layers = render_layers(8, 10, seed=6)
+    result = FullImageDenoiser(NonFiniteAt(), NonFiniteAt(), overlap=0, dtype=torch.float32,
+                               normalize_exposure=False)(layers)
+    assert result.nonfinite_outputs == 6 and np.isfinite(result.image).all()
+    assert result.diffuse[1, 1, 0] == 0 and result.specular[2, 3, 1] == 0  # log 0 -> 0 radiance
+    assert result.specular[4, 5, 2] == 0

@@ -41,13 +41,14 @@ from ..transforms import (
     specular_inverse,
     specular_noise,
 )
-from .engines import check_engine, default_precision, onnx_generators, resolve_engine
+from .engines import OnnxGenerator, check_engine, default_precision, onnx_generators, resolve_engine
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .oidn_base import oidn_bases
 from .resolved import keep_resolved
 from .tiling import default_tile, receptive_radius, run_tiled
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
+WHOLE_IMAGE = (slice(None), slice(None))
 MISSING_DEPTH = 1.0
 """Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
 environment pixels (no geometry information), and coverage 1."""
@@ -253,7 +254,7 @@ class FullImageDenoiser:
         )
 
     def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool,
-              region: tuple[slice, slice] = (slice(None), slice(None))) -> _Pass:
+              region: tuple[slice, slice] = WHOLE_IMAGE) -> _Pass:
         """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units.
 
         Only the image's `region` (rows, columns) comes out. The networks see that crop of the inputs, so
@@ -274,11 +275,16 @@ class FullImageDenoiser:
         self.synchronize()
         net_start = time.perf_counter()
         outputs, nonfinite, tiles = {}, 0, 1
-        for branch, log_input in inputs.items():
-            out, tiles = self._run(self.generators[branch], self._tensor(log_input), branch_feats[branch],
-                                   bases.get(branch))
-            nonfinite += int((~torch.isfinite(out)).sum())
-            outputs[branch] = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clamp_(0.0, LOG_MAX[branch])
+        with torch.inference_mode():  # the network's outputs are inference tensors: clamped in place
+            for branch, log_input in inputs.items():
+                generator = self.generators[branch]
+                if isinstance(generator, OnnxGenerator) and region != WHOLE_IMAGE:
+                    generator = generator.one_off  # a crop of its own size: no compile for it
+                out, tiles = self._run(generator, self._tensor(log_input), branch_feats[branch], bases.get(branch))
+                if not torch.isfinite(out.sum()):  # a NaN or an infinity reaches the sum: count and zero them
+                    nonfinite += int((~torch.isfinite(out)).sum())
+                    out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+                outputs[branch] = out.clamp_(0.0, LOG_MAX[branch])
         outputs = {b: o[0].permute(1, 2, 0).cpu().numpy() for b, o in outputs.items()}  # cpu() synchronises
         network_seconds = time.perf_counter() - net_start
         outputs = _keep_environment(outputs, inputs, clean["coverage"][region])
@@ -318,9 +324,14 @@ class FullImageDenoiser:
     def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
         codes = ENSEMBLE_CODES[self.ensemble]
         with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):
-            out = sum(undo(run_tiled(generator, apply(noisy, code), apply(feats, code, normals=True), self.tile,
+            out = None
+            for code in codes:  # run_tiled's output is a new tensor: the sum can grow in place
+                one = undo(run_tiled(generator, apply(noisy, code), apply(feats, code, normals=True), self.tile,
                                      self.overlap, self.alignment, None if base is None else apply(base, code)),
-                           code).float() for code in codes) / len(codes)
+                           code).float()
+                out = one if out is None else out.add_(one)
+            if len(codes) > 1:
+                out /= len(codes)
         _, _, height, width = noisy.shape
         return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
 

@@ -42,10 +42,21 @@ def check_engine(engine: str, device: torch.device, dtype: torch.dtype) -> None:
         raise EngineError("engine 'onnxruntime' runs float32 only (no bf16 convolutions on the CPU)")
 
 
+OPENVINO_SIZES = 8
+"""How many input sizes an OpenVINO generator keeps compiled for their own size. The small model's graph
+compiled for one static size ran 1280x720 (tiles of 640) in 0.88x the time of the graph of dynamic size
+(paired median of 25 alternating runs; docs/engines.md); compiling for a size takes 0.15-0.2 s."""
+
+
 class OnnxGenerator:
     """An exported generator graph under ONNX Runtime or OpenVINO, called as `(noisy, features[, base])`
     with float tensors on the CPU; returns the float32 output tensor. With `noise_input` the features'
-    last channel is the noise map, which the graph takes as an input of its own (export.input_names)."""
+    last channel is the noise map, which the graph takes as an input of its own (export.input_names).
+
+    OpenVINO compiles the graph once for any size and, for each size it is called with, once more for
+    that size (the OPENVINO_SIZES last ones are kept): tiles of one image, and images of one size, share
+    it. `one_off` runs the graph of any size, for a size that will not come again (the dark pass's crop),
+    where compiling for it would cost more than it saves."""
 
     def __init__(self, graph: bytes, engine: str, dtype: torch.dtype, noise_input: bool = False) -> None:
         self.engine = engine
@@ -60,14 +71,25 @@ class OnnxGenerator:
         else:
             import openvino
 
-            precision = "bf16" if dtype == torch.bfloat16 else "f32"
-            core = openvino.Core()
-            self._compiled = core.compile_model(
-                core.read_model(graph), "CPU", {"INFERENCE_PRECISION_HINT": precision, "PERFORMANCE_HINT": "LATENCY",
-                                   "INFERENCE_NUM_THREADS": torch.get_num_threads()})
-            self._request = self._compiled.create_infer_request()
+            self._core = openvino.Core()
+            self._model = self._core.read_model(graph)
+            self._config = {"INFERENCE_PRECISION_HINT": "bf16" if dtype == torch.bfloat16 else "f32",
+                            "PERFORMANCE_HINT": "LATENCY", "INFERENCE_NUM_THREADS": torch.get_num_threads()}
+            self._any_size = None  # compiled at the first one_off call
+            self._sized = {}
+
+    @property
+    def compiled_sizes(self) -> list[tuple[int, int]]:
+        """The (height, width) OpenVINO holds a graph compiled for, oldest first."""
+        return list(self._sized) if self.engine == "openvino" else []
 
     def __call__(self, *inputs: Tensor) -> Tensor:
+        return self._infer(inputs, sized=True)
+
+    def one_off(self, *inputs: Tensor) -> Tensor:
+        return self._infer(inputs, sized=False)
+
+    def _infer(self, inputs: tuple[Tensor, ...], sized: bool) -> Tensor:
         if self.noise_input:  # (noisy, features + noise[, base]) -> (noisy, features, noise[, base])
             noisy, features, *base = inputs
             inputs = (noisy, features[:, :-1], features[:, -1:], *base)
@@ -75,8 +97,30 @@ class OnnxGenerator:
         if self.engine == "onnxruntime":
             out = self._session.run(None, dict(zip(self._names, arrays)))[0]
         else:
-            out = self._request.infer(arrays, share_inputs=True)[0]
+            request = self._sized_request(*arrays[0].shape[2:]) if sized else self._any_size_request()
+            out = request.infer(arrays, share_inputs=True)[0]
         return torch.from_numpy(np.array(out, dtype=np.float32))
+
+    def _request(self, model):
+        return self._core.compile_model(model, "CPU", self._config).create_infer_request()
+
+    def _any_size_request(self):
+        if self._any_size is None:
+            self._any_size = self._request(self._model)
+        return self._any_size
+
+    def _sized_request(self, height: int, width: int):
+        """The request of the graph compiled for this size, made most recent (compiled if not held)."""
+        request = self._sized.pop((height, width), None)
+        if request is None:
+            model = self._model.clone()
+            model.reshape({i.get_any_name(): [1, i.get_partial_shape()[1].get_length(), height, width]
+                           for i in model.inputs})
+            request = self._request(model)
+            if len(self._sized) >= OPENVINO_SIZES:
+                self._sized.pop(next(iter(self._sized)))
+        self._sized[(height, width)] = request
+        return request
 
 
 def default_precision(engine: str, device: torch.device) -> torch.dtype:

@@ -27,7 +27,8 @@ had been worse than its input, by at most 0.4% on any image at 4 and 16 spp; in 
 UNSAMPLED went from 0.25 to all but one pixel on the same two sets (docs/results/2026-12-03-broad-finetune-blend.md):
 admc+oidn's relMSE out of family 1.078x -> 1.029x and 1.122x -> 0.960x OIDN's at 16 and 64 spp, no image
 worse by more than 0.12% on any metric, in family within 0.1%.
-It costs two box filters per branch, a third where any window is resolved.
+It costs one box filter per branch, a second where any window is below CONVERGED and a third where one is
+resolved.
 """
 from __future__ import annotations
 
@@ -60,10 +61,12 @@ def keep_resolved(denoised: np.ndarray, noisy: np.ndarray, variance: np.ndarray,
     size = 2 * RADIUS + 1
     scale = np.square(_channel_mean(value)) + np.float32(RELMSE_EPS)  # as relMSE: dark pixels are not blown up
     mean_variance = np.maximum(uniform_filter(_channel_mean(variance) / scale, size, mode="reflect"), 0.0)
-    silent = (variance[..., 0] <= 0) & (variance[..., 1] <= 0) & (variance[..., 2] <= 0)
-    unsampled = uniform_filter(silent.astype(np.float32), size, mode="reflect")
-    resolved = (mean_variance < CONVERGED) & (unsampled <= UNSAMPLED)
+    resolved = mean_variance < CONVERGED
     if not resolved.any():  # most of a low-spp image: nothing more to compute
+        return denoised, 0.0
+    silent = (variance[..., 0] <= 0) & (variance[..., 1] <= 0) & (variance[..., 2] <= 0)
+    resolved &= uniform_filter(silent.astype(np.float32), size, mode="reflect") <= UNSAMPLED
+    if not resolved.any():
         return denoised, 0.0
     mean_squared = uniform_filter(_channel_mean(np.square(denoised - noisy)) / scale, size, mode="reflect")
     bias = mean_squared - mean_variance * np.float32(1.0 + MARGIN * np.sqrt(2.0) / size)
