@@ -179,6 +179,9 @@ class FullImageDenoiser:
         if engine != "torch":
             self.generators = onnx_generators(self.generators, engine, self.dtype)
         self.engine = engine
+        self.memory_format = MEMORY_FORMAT if engine == "torch" else torch.contiguous_format
+        """The inputs' layout: torch's convs want channels_last; the exported graphs take NCHW, so their
+        tiles are then row copies, not transposes."""
         self.tile = tile or default_tile(self.torch_device, overlap, engine)
         self.overlap = overlap
         self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
@@ -305,11 +308,11 @@ class FullImageDenoiser:
         variance = clean[f"{branch}_var"][region] * np.float32(gain) ** 2
         noise = (diffuse_noise(variance, exposed["diffuse"][region], clean["albedo"][region]) if branch == "diffuse"
                  else specular_noise(variance, exposed["specular"][region]))
-        return torch.cat([feats, self._tensor(noise)], dim=1).contiguous(memory_format=MEMORY_FORMAT)
+        return torch.cat([feats, self._tensor(noise)], dim=1).contiguous(memory_format=self.memory_format)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
-        return t.contiguous(memory_format=MEMORY_FORMAT)
+        return t.contiguous(memory_format=self.memory_format)
 
     def _bases(self, clean: dict[str, np.ndarray], branches: tuple[str, ...],
                region: tuple[slice, slice]) -> dict[str, Tensor]:
