@@ -42,10 +42,12 @@ def check_engine(engine: str, device: torch.device, dtype: torch.dtype) -> None:
         raise EngineError("engine 'onnxruntime' runs float32 only (no bf16 convolutions on the CPU)")
 
 
-OPENVINO_SIZES = 8
-"""How many input sizes an OpenVINO generator keeps compiled for their own size. The small model's graph
-compiled for one static size ran 1280x720 (tiles of 640) in 0.88x the time of the graph of dynamic size
-(paired median of 25 alternating runs; docs/engines.md); compiling for a size takes 0.15-0.2 s."""
+OPENVINO_SIZES = 2
+"""How many input sizes an OpenVINO generator keeps compiled for their own size: two, a tile and its
+transpose (the ensemble's). The small model's graph compiled for one static size ran 1280x720 (tiles of
+640) in 0.88x the time of the graph of dynamic size (paired median of 25 alternating runs;
+docs/engines.md); compiling for a size takes 0.15-0.2 s, and each holds its own buffers (the process grew
+by 180 MB for a 664x384 tile, 500 MB for 1280x720, per branch)."""
 
 
 class OnnxGenerator:
