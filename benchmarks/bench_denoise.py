@@ -23,7 +23,8 @@ OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime
 the ONNX engines run on a CPU only (model/inference/engines.py). By default the image runs in the denoiser's own tiles with the
 receptive-field halo (tiling.default_tile: 320 on a CPU, 640 in OpenVINO, 512 on a GPU, at least 8 halos), as
 `admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
-2-core CPU is about twice as slow at 1280x720 (whole-image convs leave the caches).
+2-core CPU is about twice as slow at 1280x720 in torch (whole-image convs leave the caches) and within the
+run-to-run spread of tiles of 640 in OpenVINO (docs/engines.md).
 """
 from __future__ import annotations
 
