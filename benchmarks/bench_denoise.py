@@ -12,9 +12,8 @@ engine (eval.engine of configs/default.toml) in its default precision, the lines
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner on the default bases (tile.refiner_base), whose call runs OIDN per branch first;
 small-slim is the small model with one CFM layer per residual block and one-layer condition nets
-(model.cfm_per_block = model.condition_layers = 1); small-unet is the small model on the multi-scale body (model.backbone = "unet"), whose tiles need a
-116-px halo. Each timed run
-is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the
+(model.cfm_per_block = model.condition_layers = 1); small-unet is the small model on the multi-scale
+body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run is one FullImageDenoiser call (eval.keep_resolved as configs/default.toml sets it); "network" is the
 generators' share (synchronised: on CUDA it ends with the copy back to the host), "total" adds
 sanitising and the NumPy transforms. After --warmup untimed runs
 each, the precisions and the baselines take turns run by run (a busy machine slows them alike);

@@ -28,6 +28,7 @@ from admc.model.training.slimming import slim_generator
 from admc.stores.checkpoints import export_weights, load_weights
 from admc.stores.patches import PatchReader
 
+
 def read_batch(store: Path, branch: str, model: ModelSettings, transform: dict, patches: int,
                seed: int) -> dict[str, Tensor]:
     reader = PatchReader(store, "train", expect_transform=transform, branch=branch,

@@ -61,8 +61,9 @@ class GeneratorConfig:
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"GeneratorConfig.{name}: must be a positive int, got {value!r}")
         for name in ("cfm_per_block", "condition_layers"):
-            if type(getattr(self, name)) is not int or getattr(self, name) not in (1, 2):
-                raise ValueError(f"GeneratorConfig.{name}: must be 1 or 2, got {getattr(self, name)!r}")
+            value = getattr(self, name)
+            if type(value) is not int or value not in (1, 2):
+                raise ValueError(f"GeneratorConfig.{name}: must be 1 or 2, got {value!r}")
 
     @property
     def modulated(self) -> bool:

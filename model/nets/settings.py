@@ -43,7 +43,8 @@ class ModelSettings:
         require(isinstance(self.input_skip, bool), "input_skip", f"must be true or false, got {self.input_skip!r}")
         require(isinstance(self.noise_input, bool), "noise_input", f"must be true or false, got {self.noise_input!r}")
         for key in ("cfm_per_block", "condition_layers"):
-            require(type(getattr(self, key)) is int and getattr(self, key) in (1, 2), key, f"must be 1 or 2, got {getattr(self, key)!r}")
+            value = getattr(self, key)
+            require(type(value) is int and value in (1, 2), key, f"must be 1 or 2, got {value!r}")
         require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
         require(self.base == "noisy" or self.mode in MODULATED_MODES, "base",
                 f"{self.base!r} needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "

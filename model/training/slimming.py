@@ -67,8 +67,7 @@ def slim_generator(full: Generator, slim: Generator, batch: dict[str, Tensor], s
     cond = full.encoder(features if base is None else torch.cat([features, noisy], dim=1))
     n, _, h, w = noisy.shape
     index = torch.randperm(n * h * w, generator=torch.Generator().manual_seed(seed))[:PIXELS]
-    head = slim.head(start)
-    x = head
+    x = slim.head(start)
     for full_block, slim_block in zip(full.blocks, slim.blocks):
         fit_cfm(slim_block.cfm[0], full_block.cfm[0], cond, index)
         if len(slim_block.cfm) < len(full_block.cfm):
