@@ -1,4 +1,4 @@
-"""Data transforms between rendered buffers and network tensors (pure NumPy, HWC float arrays).
+"""Data transforms between rendered buffers and network tensors (NumPy HWC float arrays in and out).
 
 Radiance goes into a log domain so that HDR values fit FP16 with even relative precision; diffuse is
 first demodulated by albedo (the network sees texture-free illumination, as in the authors' code).
@@ -8,6 +8,7 @@ reported by the caller); the forward transforms refuse anything non-finite, so n
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from admc.common.buffers import DENOISER_LAYERS, LAYERS, RADIANCE_MAX, VARIANCE_MAX, sanitize
 from admc.common.layout import FEATURE_CHANNELS, FP16_MAX
@@ -49,6 +50,19 @@ def _require_finite(func: str, **arrays: np.ndarray) -> None:
             raise ValueError(f"{func}: {name} has {bad} non-finite values; call sanitize({name!r}) first")
 
 
+def _log1p_(x: np.ndarray) -> np.ndarray:
+    """log1p of a float32 array the caller owns, in place, through torch: NumPy's float32 log1p and expm1
+    are scalar loops, torch's are vectorised (a 1280x720 RGB layer: 56 against 7 ms on an AVX2 CPU)."""
+    torch.from_numpy(x).log1p_()
+    return x
+
+
+def _expm1_(x: np.ndarray) -> np.ndarray:
+    """expm1 in place, as _log1p_."""
+    torch.from_numpy(x).expm1_()
+    return x
+
+
 def _demodulation_albedo(albedo: np.ndarray) -> np.ndarray:
     """Albedo as used to (de)modulate diffuse: the same clipped values as the albedo feature."""
     return np.clip(np.asarray(albedo, dtype=np.float32), 0.0, 1.0) + np.float32(EPS)
@@ -60,25 +74,27 @@ def diffuse_forward(diffuse: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     of values the network reads in bf16 (and the patch store keeps in FP16)."""
     _require_finite("diffuse_forward", diffuse=diffuse, albedo=albedo)
     d = np.clip(np.asarray(diffuse, dtype=np.float32), 0.0, RADIANCE_MAX)
-    return np.log1p(d / _demodulation_albedo(albedo))
+    return _log1p_(d / _demodulation_albedo(albedo))
 
 
 def diffuse_inverse(d: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     """expm1(d) * (albedo + eps): linear diffuse radiance from the log domain."""
     _require_finite("diffuse_inverse", d=d, albedo=albedo)
-    return np.expm1(np.asarray(d, dtype=np.float32)) * _demodulation_albedo(albedo)
+    linear = _expm1_(np.array(d, dtype=np.float32))
+    linear *= _demodulation_albedo(albedo)
+    return linear
 
 
 def specular_forward(specular: np.ndarray) -> np.ndarray:
     """log1p(specular) on finite inputs, negatives to 0."""
     _require_finite("specular_forward", specular=specular)
-    return np.log1p(np.clip(np.asarray(specular, dtype=np.float32), 0.0, RADIANCE_MAX))
+    return _log1p_(np.clip(np.asarray(specular, dtype=np.float32), 0.0, RADIANCE_MAX))
 
 
 def specular_inverse(s: np.ndarray) -> np.ndarray:
     """expm1(s): linear specular radiance from the log domain."""
     _require_finite("specular_inverse", s=s)
-    return np.expm1(np.asarray(s, dtype=np.float32))
+    return _expm1_(np.array(s, dtype=np.float32))
 
 
 def normal_forward(normal: np.ndarray) -> np.ndarray:
