@@ -53,12 +53,14 @@ def _require_finite(func: str, **arrays: np.ndarray) -> None:
 def _log1p_(x: np.ndarray) -> np.ndarray:
     """log1p of a float32 array the caller owns, in place, through torch: NumPy's float32 log1p and expm1
     are scalar loops, torch's are vectorised (a 1280x720 RGB layer: 56 against 7 ms on an AVX2 CPU)."""
+    x = np.asarray(x)  # a NumPy scalar (what ufuncs return for 0-d input) as a 0-d array
     torch.from_numpy(x).log1p_()
     return x
 
 
 def _expm1_(x: np.ndarray) -> np.ndarray:
     """expm1 in place, as _log1p_."""
+    x = np.asarray(x)
     torch.from_numpy(x).expm1_()
     return x
 

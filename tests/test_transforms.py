@@ -47,6 +47,27 @@ def test_forward_refuses_unsanitized_input():
         T.specular_forward(np.array([np.inf]))
 
 
+@pytest.mark.parametrize("layout", ["contiguous", "flipped", "channels_first", "scalar"])
+def test_log_transforms_match_numpy_on_any_layout(layout):
+    """log1p / expm1 run in place through torch: on views, transposed layouts and 0-d input they give
+    NumPy's float32 result within 4 float32 epsilons (each library rounds the function to about 1 ulp,
+    the albedo product rounds once more) and leave the caller's arrays as they were."""
+    rng = np.random.default_rng(3)
+    linear, albedo = rng.gamma(0.5, 2.0, (4, 6, 3)).astype(np.float32), rng.random((4, 6, 3), dtype=np.float32)
+    views = {"contiguous": lambda a: a, "flipped": lambda a: a[::-1, ::2],
+             "channels_first": lambda a: np.ascontiguousarray(a.transpose(2, 0, 1)).transpose(1, 2, 0),
+             "scalar": lambda a: a[1, 2, 0]}
+    x, a = views[layout](linear), views[layout](albedo)
+    before = (np.copy(x), np.copy(a))
+    a32 = np.clip(a, 0, 1) + np.float32(T.EPS)
+    pairs = [(T.diffuse_forward(x, a), np.log1p(x / a32)), (T.specular_forward(x), np.log1p(x)),
+             (T.diffuse_inverse(x, a), np.expm1(x) * a32), (T.specular_inverse(x), np.expm1(x))]
+    for got, want in pairs:
+        np.testing.assert_allclose(got, want, rtol=4 * np.finfo(np.float32).eps, atol=0)
+    np.testing.assert_array_equal(x, before[0])
+    np.testing.assert_array_equal(a, before[1])
+
+
 def test_diffuse_known_values_zero_and_white_albedo():
     d = T.diffuse_forward(np.array([1.0, 1.0, 0.0, -3.0]), np.array([0.0, 1.0, 0.5, 0.5]))
     np.testing.assert_allclose(d, [np.log1p(1 / T.EPS), np.log1p(1 / (1 + T.EPS)), 0.0, 0.0], rtol=1e-6)
