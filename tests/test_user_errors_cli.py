@@ -176,10 +176,13 @@ def test_a_batch_carries_on_past_a_bad_file_and_fails_at_the_end(tmp_path):
 
 def _interrupt_at(workdir: Path, step: int, checkpoint_every: int):
     """Start a long `train` with data-loader workers, and once it has logged `step` send SIGINT to its whole
-    process group, as Ctrl-C in a terminal does; return its exit code and stderr."""
+    process group, as Ctrl-C in a terminal does; return its exit code and stderr. The child gets SIGINT's
+    default action back: a suite started in the background of a script inherits it ignored, and the
+    training would then never stop."""
     items = settings(workdir, steps=10_000) + [f"train.checkpoint_every={checkpoint_every}", "train.num_workers=2"]
     process = subprocess.Popen([ADMC, "train", *flags(items)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True)
+                               text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     for line in process.stderr:
         seen.append(line)
