@@ -8,6 +8,8 @@ float32 0.72 s and OpenVINO bf16 0.31 s (STACK_NOTES.md; docs/engines.md).
 """
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -49,6 +51,13 @@ transpose (the ensemble's). The small model's graph compiled for one static size
 docs/engines.md); compiling for a size takes 0.15-0.2 s, and each holds its own buffers (the process grew
 by 180 MB for a 664x384 tile, 500 MB for 1280x720, per branch)."""
 
+OPENVINO_STREAMS = 2
+"""How many tiles of one image OpenVINO runs at once (`OnnxGenerator.map`), each on its share of the
+threads: the 16-channel layers are too small to keep two threads busy on one tile. On the 2-core AVX2
+EPYC both networks of a 1280x720 image (four tiles each, float32) took 0.92x the time of running the
+tiles in turn at two threads (paired median of 21 alternating runs), for 450 MB more at peak (each
+stream holds its own buffers): docs/engines.md. An image of one tile runs as before."""
+
 
 class OnnxGenerator:
     """An exported generator graph under ONNX Runtime or OpenVINO, called as `(noisy, features[, base])`
@@ -58,7 +67,8 @@ class OnnxGenerator:
     OpenVINO compiles the graph once for any size and, for each size it is called with, once more for
     that size (the OPENVINO_SIZES last ones are kept): tiles of one image, and images of one size, share
     it. `one_off` runs the graph of any size, for a size that will not come again (the dark pass's crop),
-    where compiling for it would cost more than it saves."""
+    where compiling for it would cost more than it saves. `map` runs many calls of one size (an image's
+    tiles), OPENVINO_STREAMS at a time."""
 
     def __init__(self, graph: bytes, engine: str, dtype: torch.dtype, noise_input: bool = False) -> None:
         self.engine = engine
@@ -75,54 +85,93 @@ class OnnxGenerator:
 
             self._core = openvino.Core()
             self._model = self._core.read_model(graph)
-            self._config = {"INFERENCE_PRECISION_HINT": "bf16" if dtype == torch.bfloat16 else "f32",
-                            "PERFORMANCE_HINT": "LATENCY", "INFERENCE_NUM_THREADS": torch.get_num_threads()}
+            self._threads = torch.get_num_threads()
+            self._precision = "bf16" if dtype == torch.bfloat16 else "f32"
             self._any_size = None  # compiled at the first one_off call
-            self._sized = {}
+            self._sized = {}  # (height, width, streams) -> one infer request per stream
 
     @property
     def compiled_sizes(self) -> list[tuple[int, int]]:
         """The (height, width) OpenVINO holds a graph compiled for, oldest first."""
-        return list(self._sized) if self.engine == "openvino" else []
+        return [size[:2] for size in self._sized] if self.engine == "openvino" else []
 
     def __call__(self, *inputs: Tensor) -> Tensor:
-        return self._infer(inputs, sized=True)
+        arrays = self._arrays(inputs)
+        if self.engine == "onnxruntime":
+            return _tensor(self._session.run(None, dict(zip(self._names, arrays)))[0])
+        request = self._sized_requests(*arrays[0].shape[2:], streams=1)[0]
+        return _tensor(request.infer(arrays, share_inputs=True)[0])
 
     def one_off(self, *inputs: Tensor) -> Tensor:
-        return self._infer(inputs, sized=False)
+        """One call in the graph of any size (OpenVINO; ONNX Runtime's graph is of any size anyway)."""
+        if self.engine == "onnxruntime":
+            return self(*inputs)
+        if self._any_size is None:
+            self._any_size = self._compile(self._model, streams=1)[0]
+        return _tensor(self._any_size.infer(self._arrays(inputs), share_inputs=True)[0])
 
-    def _infer(self, inputs: tuple[Tensor, ...], sized: bool) -> Tensor:
+    def map(self, calls: list[tuple[Tensor, ...]]) -> Iterator[Tensor]:
+        """The outputs of `calls` (input tuples of one size), in order. OpenVINO runs OPENVINO_STREAMS of
+        them at once when there are that many and a thread for each; otherwise they run in turn."""
+        streams = OPENVINO_STREAMS if self.engine == "openvino" and self._threads >= OPENVINO_STREAMS else 1
+        if len(calls) < 2 or streams == 1:
+            yield from (self(*inputs) for inputs in calls)
+            return
+        requests = self._sized_requests(*calls[0][0].shape[2:], streams=streams)
+        running = deque()  # (request, the arrays it reads), oldest first: the next request to reuse
+        try:
+            for index, inputs in enumerate(calls):
+                if len(running) == streams:
+                    yield _finished(*running.popleft())
+                arrays = self._arrays(inputs)
+                request = requests[index % streams]
+                request.start_async(arrays, share_inputs=True)
+                running.append((request, arrays))
+            while running:
+                yield _finished(*running.popleft())
+        finally:  # stopped early (an error, a caller that gave up): no request may read freed arrays
+            for request, _ in running:
+                request.wait()
+
+    def _arrays(self, inputs: tuple[Tensor, ...]) -> list[np.ndarray]:
         if self.noise_input:  # (noisy, features + noise[, base]) -> (noisy, features, noise[, base])
             noisy, features, *base = inputs
             inputs = (noisy, features[:, :-1], features[:, -1:], *base)
-        arrays = [np.ascontiguousarray(t.detach().float().cpu().numpy()) for t in inputs]
-        if self.engine == "onnxruntime":
-            out = self._session.run(None, dict(zip(self._names, arrays)))[0]
-        else:
-            request = self._sized_request(*arrays[0].shape[2:]) if sized else self._any_size_request()
-            out = request.infer(arrays, share_inputs=True)[0]
-        return torch.from_numpy(np.array(out, dtype=np.float32))
+        return [np.ascontiguousarray(t.detach().float().cpu().numpy()) for t in inputs]
 
-    def _request(self, model):
-        return self._core.compile_model(model, "CPU", self._config).create_infer_request()
+    def _compile(self, model, streams: int) -> list:
+        """`streams` infer requests of `model`, each on threads / streams of the threads."""
+        config = {"INFERENCE_PRECISION_HINT": self._precision, "INFERENCE_NUM_THREADS": self._threads,
+                  "PERFORMANCE_HINT": "LATENCY" if streams == 1 else "THROUGHPUT",
+                  **({"NUM_STREAMS": streams} if streams > 1 else {})}
+        compiled = self._core.compile_model(model, "CPU", config)
+        return [compiled.create_infer_request() for _ in range(streams)]
 
-    def _any_size_request(self):
-        if self._any_size is None:
-            self._any_size = self._request(self._model)
-        return self._any_size
-
-    def _sized_request(self, height: int, width: int):
-        """The request of the graph compiled for this size, made most recent (compiled if not held)."""
-        request = self._sized.pop((height, width), None)
-        if request is None:
+    def _sized_requests(self, height: int, width: int, streams: int) -> list:
+        """The requests of the graph compiled for this size and stream count, made most recent (compiled if
+        not held)."""
+        key = (height, width, streams)
+        requests = self._sized.pop(key, None)
+        if requests is None:
             model = self._model.clone()
             model.reshape({i.get_any_name(): [1, i.get_partial_shape()[1].get_length(), height, width]
                            for i in model.inputs})
-            request = self._request(model)
+            requests = self._compile(model, streams)
             if len(self._sized) >= OPENVINO_SIZES:
                 self._sized.pop(next(iter(self._sized)))
-        self._sized[(height, width)] = request
-        return request
+        self._sized[key] = requests
+        return requests
+
+
+def _tensor(output: np.ndarray) -> Tensor:
+    """An engine's output as a float32 tensor of its own (the engine reuses its output buffer)."""
+    return torch.from_numpy(np.array(output, dtype=np.float32))
+
+
+def _finished(request, arrays: list[np.ndarray]) -> Tensor:
+    """The output of a started OpenVINO request, once it is done (`arrays`: its inputs, alive until then)."""
+    request.wait()
+    return _tensor(request.get_output_tensor(0).data)
 
 
 def default_precision(engine: str, device: torch.device) -> torch.dtype:

@@ -75,14 +75,16 @@ def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, hal
     """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
     With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
-    untiled call up to float rounding.
+    untiled call up to float rounding. A generator with a `map` method (engines.OnnxGenerator) is given
+    all tiles at once, to run several together.
     """
     _, _, height, width = noisy.shape
     out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
-    for y0, y1, cy0, cy1 in axis_windows(height, tile, halo, align):
-        for x0, x1, cx0, cx1 in axis_windows(width, tile, halo, align):
-            window = (..., slice(cy0, cy1), slice(cx0, cx1))
-            extra = () if base is None else (base[window],)
-            crop = generator(noisy[window], feats[window], *extra)
-            out[..., y0:y1, x0:x1] = crop[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
+    windows = [(rows, columns) for rows in axis_windows(height, tile, halo, align)
+               for columns in axis_windows(width, tile, halo, align)]
+    crops = [(..., slice(cy0, cy1), slice(cx0, cx1)) for (_, _, cy0, cy1), (_, _, cx0, cx1) in windows]
+    calls = [(noisy[crop], feats[crop], *(() if base is None else (base[crop],))) for crop in crops]
+    outputs = generator.map(calls) if hasattr(generator, "map") else (generator(*call) for call in calls)
+    for ((y0, y1, cy0, _), (x0, x1, cx0, _)), output in zip(windows, outputs):
+        out[..., y0:y1, x0:x1] = output[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
     return out
