@@ -7,7 +7,7 @@ from test_export import FLOAT32_LOG_TOLERANCE
 from test_inference import render_layers
 
 from admc.model.inference.denoiser import load_denoiser
-from admc.model.inference.engines import OPENVINO_SIZES, OPENVINO_STREAMS, EngineError, OnnxGenerator
+from admc.model.inference.engines import OPENVINO_SIZES, OPENVINO_STREAMS, EngineError, OnnxGenerator, run_together
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
 from admc.pipeline.weights import WEIGHTS_DIR
@@ -138,33 +138,35 @@ def openvino_with_threads(threads: int, **options):
         torch.set_num_threads(previous)
 
 
-def test_openvino_runs_tiles_together_with_the_torch_result():
-    """With two threads an image's tiles run OPENVINO_STREAMS at a time, each on one thread: torch's result,
-    and tiles of one size share one compiled graph."""
-    layers = render_layers(48, 64, seed=6)
-    exact = log_branches(load_denoiser(SHIPPED, tile=20, dtype=torch.float32)(layers), layers)
-    denoiser = openvino_with_threads(2, tile=20)
+@pytest.mark.parametrize("height,width,tile,tiles", [(48, 64, 20, 12), (40, 56, None, 1)])
+def test_openvino_runs_calls_together_with_the_torch_result(height, width, tile, tiles):
+    """With two threads an image's tiles, and both branches of an image of one tile, run OPENVINO_STREAMS at
+    a time, each on one thread: torch's result, and calls of one size share one compiled graph."""
+    layers = render_layers(height, width, seed=6)
+    exact = log_branches(load_denoiser(SHIPPED, tile=tile, dtype=torch.float32)(layers), layers)
+    denoiser = openvino_with_threads(2, tile=tile)
     result = denoiser(layers)
-    assert result.tiles == 12
+    assert result.tiles == tiles
     assert np.abs(log_branches(result, layers) - exact).max() <= FLOAT32_LOG_TOLERANCE
     assert all([streams for *_, streams in g._sized] == [OPENVINO_STREAMS] for g in denoiser.generators.values())
 
 
-def test_openvino_map_stopped_early_waits_for_its_tiles():
-    """A caller that stops taking a map's outputs (an error while it writes a tile) leaves no request
-    running on inputs that are then freed; the next map gives the right outputs. The tiles are large
-    enough (tens of ms) that the second one is still running when the first comes back."""
+def test_openvino_calls_stopped_early_wait_for_their_requests():
+    """A caller that stops taking run_together's outputs (an error while it writes a tile) leaves no request
+    running on inputs that are then freed; the next calls give the right outputs. The first call is tiny
+    and the second large (tens of ms), so the second is still running when the first comes back."""
     exact = load_denoiser(SHIPPED, dtype=torch.float32).generators["diffuse"]
     generator = openvino_with_threads(2).generators["diffuse"]
     rng = torch.Generator().manual_seed(7)
-    calls = [(torch.rand((1, 3, 160, 192), generator=rng) * 4, torch.rand((1, 7, 160, 192), generator=rng))
-             for _ in range(3)]
+    sizes = [(8, 12), (192, 256), (8, 12)]
+    calls = [(generator, (torch.rand((1, 3, *size), generator=rng) * 4, torch.rand((1, 7, *size), generator=rng)))
+             for size in sizes]
     with torch.inference_mode():
-        references = [exact(*call) for call in calls]
-    outputs = generator.map(calls)
+        references = [exact(*inputs) for _, inputs in calls]
+    outputs = run_together(calls)
     first = next(outputs)
     outputs.close()
-    assert all(request.wait_for(0) for request in generator._sized[(160, 192, OPENVINO_STREAMS)])
+    assert generator._sized[(192, 256, OPENVINO_STREAMS)][1].wait_for(0)  # the second call's request is done
     assert (first - references[0]).abs().max() <= FLOAT32_LOG_TOLERANCE
-    for output, reference in zip(generator.map(calls), references, strict=True):
+    for output, reference in zip(run_together(calls), references, strict=True):
         assert (output - reference).abs().max() <= FLOAT32_LOG_TOLERANCE

@@ -13,6 +13,7 @@ image are taken from a second pass at a higher exposure (exposure.py).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -41,11 +42,11 @@ from ..transforms import (
     specular_inverse,
     specular_noise,
 )
-from .engines import OnnxGenerator, check_engine, default_precision, onnx_generators, resolve_engine
+from .engines import OnnxGenerator, check_engine, default_precision, onnx_generators, resolve_engine, run_together
 from .exposure import DARK_GAIN, dark_weights, exposure_gain
 from .oidn_base import oidn_bases
 from .resolved import keep_resolved
-from .tiling import default_tile, receptive_radius, run_tiled
+from .tiling import default_tile, paste, receptive_radius, tile_calls
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
 WHOLE_IMAGE = (slice(None), slice(None))
@@ -277,13 +278,15 @@ class FullImageDenoiser:
 
         self.synchronize()
         net_start = time.perf_counter()
-        outputs, nonfinite, tiles = {}, 0, 1
+        jobs = {}
+        for branch, log_input in inputs.items():
+            generator = self.generators[branch]
+            if isinstance(generator, OnnxGenerator) and region != WHOLE_IMAGE:
+                generator = generator.one_off  # a crop of its own size: no compile for it
+            jobs[branch] = (generator, self._tensor(log_input), branch_feats[branch], bases.get(branch))
+        outputs, nonfinite = {}, 0
         with torch.inference_mode():  # the network's outputs are inference tensors: clamped in place
-            for branch, log_input in inputs.items():
-                generator = self.generators[branch]
-                if isinstance(generator, OnnxGenerator) and region != WHOLE_IMAGE:
-                    generator = generator.one_off  # a crop of its own size: no compile for it
-                out, tiles = self._run(generator, self._tensor(log_input), branch_feats[branch], bases.get(branch))
+            for branch, out in self._run(jobs).items():
                 if not torch.isfinite(out.sum()):  # a NaN or an infinity reaches the sum: count and zero them
                     nonfinite += int((~torch.isfinite(out)).sum())
                     out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
@@ -297,6 +300,8 @@ class FullImageDenoiser:
             specular = specular_inverse(outputs["specular"]) / np.float32(gain)
         else:
             specular = clean["specular"][region] if "specular" in clean else None  # passed through, never written
+        _, _, height, width = jobs["diffuse"][1].shape
+        tiles = math.ceil(height / self.tile) * math.ceil(width / self.tile)
         return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
 
     def _with_noise(self, branch: str, feats: Tensor, clean: dict[str, np.ndarray], exposed: dict[str, np.ndarray],
@@ -324,19 +329,29 @@ class FullImageDenoiser:
         forward = {"diffuse": lambda x: diffuse_forward(x, clean["albedo"][region]), "specular": specular_forward}
         return {branch: self._tensor(forward[branch](linear[branch][region])) for branch in branches}
 
-    def _run(self, generator: nn.Module, noisy: Tensor, feats: Tensor, base: Tensor | None) -> tuple[Tensor, int]:
+    def _run(self, jobs: dict[str, tuple[nn.Module, Tensor, Tensor, Tensor | None]]) -> dict[str, Tensor]:
+        """Each branch's `(generator, noisy, feats, base)` through its generator: tiled, averaged over the
+        ensemble's symmetries. Per symmetry, both branches' tiles go to engines.run_together in one list, so
+        that an exported graph's tiles, and the two branches, can run at once."""
         codes = ENSEMBLE_CODES[self.ensemble]
-        with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):
-            out = None
-            for code in codes:  # run_tiled's output is a new tensor: the sum can grow in place
-                one = undo(run_tiled(generator, apply(noisy, code), apply(feats, code, normals=True), self.tile,
-                                     self.overlap, self.alignment, None if base is None else apply(base, code)),
-                           code).float()
-                out = one if out is None else out.add_(one)
-            if len(codes) > 1:
+        summed = {}
+        for code in codes:
+            plans, calls = [], []  # plans: (branch, its tiles' windows, its turned input) in the calls' order
+            for branch, (generator, noisy, feats, base) in jobs.items():
+                turned = apply(noisy, code)
+                windows, tiles = tile_calls(turned, apply(feats, code, normals=True), self.tile, self.overlap,
+                                            self.alignment, None if base is None else apply(base, code))
+                plans.append((branch, windows, turned))
+                calls += [(generator, tile) for tile in tiles]
+            outputs = run_together(calls)
+            with torch.inference_mode(), autocast_for(self.torch_device, self.dtype):  # calls run as read
+                for branch, windows, turned in plans:  # paste's output is new: the sum can grow in place
+                    one = undo(paste(windows, itertools.islice(outputs, len(windows)), turned), code).float()
+                    summed[branch] = summed[branch].add_(one) if branch in summed else one
+        if len(codes) > 1:
+            for out in summed.values():
                 out /= len(codes)
-        _, _, height, width = noisy.shape
-        return out, math.ceil(height / self.tile) * math.ceil(width / self.tile)
+        return summed
 
 
 def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, slice]:

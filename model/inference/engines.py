@@ -9,7 +9,7 @@ float32 0.72 s and OpenVINO bf16 0.31 s (STACK_NOTES.md; docs/engines.md).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -52,11 +52,12 @@ docs/engines.md); compiling for a size takes 0.15-0.2 s, and each holds its own 
 by 180 MB for a 664x384 tile, 500 MB for 1280x720, per branch)."""
 
 OPENVINO_STREAMS = 2
-"""How many tiles of one image OpenVINO runs at once (`OnnxGenerator.map`), each on its share of the
-threads: the 16-channel layers are too small to keep two threads busy on one tile. On the 2-core AVX2
-EPYC both networks of a 1280x720 image (four tiles each, float32) took 0.92x the time of running the
-tiles in turn at two threads (paired median of 21 alternating runs), for 450 MB more at peak (each
-stream holds its own buffers): docs/engines.md. An image of one tile runs as before."""
+"""How many network calls OpenVINO runs at once (`run_together`: an image's tiles, both branches), each on its
+share of the threads: the 16-channel layers are too small to keep two threads busy on one call. On the
+2-core AVX2 EPYC both networks of a 1280x720 image (four tiles each, float32) took 0.92x the time of
+running the tiles in turn at two threads (paired median of 21 alternating runs), for 450 MB more at peak
+(each stream holds its own buffers); both branches of a 128x128 image at once took 0.92x too
+(docs/engines.md)."""
 
 
 class OnnxGenerator:
@@ -67,8 +68,7 @@ class OnnxGenerator:
     OpenVINO compiles the graph once for any size and, for each size it is called with, once more for
     that size (the OPENVINO_SIZES last ones are kept): tiles of one image, and images of one size, share
     it. `one_off` runs the graph of any size, for a size that will not come again (the dark pass's crop),
-    where compiling for it would cost more than it saves. `map` runs many calls of one size (an image's
-    tiles), OPENVINO_STREAMS at a time."""
+    where compiling for it would cost more than it saves. `run_together` runs several calls at once."""
 
     def __init__(self, graph: bytes, engine: str, dtype: torch.dtype, noise_input: bool = False) -> None:
         self.engine = engine
@@ -110,29 +110,6 @@ class OnnxGenerator:
             self._any_size = self._compile(self._model, streams=1)[0]
         return _tensor(self._any_size.infer(self._arrays(inputs), share_inputs=True)[0])
 
-    def map(self, calls: list[tuple[Tensor, ...]]) -> Iterator[Tensor]:
-        """The outputs of `calls` (input tuples of one size), in order. OpenVINO runs OPENVINO_STREAMS of
-        them at once when there are that many and a thread for each; otherwise they run in turn."""
-        streams = OPENVINO_STREAMS if self.engine == "openvino" and self._threads >= OPENVINO_STREAMS else 1
-        if len(calls) < 2 or streams == 1:
-            yield from (self(*inputs) for inputs in calls)
-            return
-        requests = self._sized_requests(*calls[0][0].shape[2:], streams=streams)
-        running = deque()  # (request, the arrays it reads), oldest first: the next request to reuse
-        try:
-            for index, inputs in enumerate(calls):
-                if len(running) == streams:
-                    yield _finished(*running.popleft())
-                arrays = self._arrays(inputs)
-                request = requests[index % streams]
-                request.start_async(arrays, share_inputs=True)
-                running.append((request, arrays))
-            while running:
-                yield _finished(*running.popleft())
-        finally:  # stopped early (an error, a caller that gave up): no request may read freed arrays
-            for request, _ in running:
-                request.wait()
-
     def _arrays(self, inputs: tuple[Tensor, ...]) -> list[np.ndarray]:
         if self.noise_input:  # (noisy, features + noise[, base]) -> (noisy, features, noise[, base])
             noisy, features, *base = inputs
@@ -140,10 +117,12 @@ class OnnxGenerator:
         return [np.ascontiguousarray(t.detach().float().cpu().numpy()) for t in inputs]
 
     def _compile(self, model, streams: int) -> list:
-        """`streams` infer requests of `model`, each on threads / streams of the threads."""
+        """`streams` infer requests of `model`, each on threads / streams of the threads. Several streams
+        are not pinned to cores: each graph would pin its first stream to the first core, and the two
+        branches' graphs, run at once, would share it (1.8x the time of one after the other)."""
         config = {"INFERENCE_PRECISION_HINT": self._precision, "INFERENCE_NUM_THREADS": self._threads,
                   "PERFORMANCE_HINT": "LATENCY" if streams == 1 else "THROUGHPUT",
-                  **({"NUM_STREAMS": streams} if streams > 1 else {})}
+                  **({"NUM_STREAMS": streams, "ENABLE_CPU_PINNING": False} if streams > 1 else {})}
         compiled = self._core.compile_model(model, "CPU", config)
         return [compiled.create_infer_request() for _ in range(streams)]
 
@@ -161,6 +140,32 @@ class OnnxGenerator:
                 self._sized.pop(next(iter(self._sized)))
         self._sized[key] = requests
         return requests
+
+
+def run_together(calls: list[tuple[Callable, tuple[Tensor, ...]]]) -> Iterator[Tensor]:
+    """The outputs of `(generator, inputs)` calls, in order. Where every generator is an OpenVINO graph with
+    a thread per stream, OPENVINO_STREAMS calls run at once, each in its generator's graph compiled for its
+    size; otherwise the calls run in turn."""
+    together = len(calls) > 1 and all(isinstance(g, OnnxGenerator) and g.engine == "openvino"
+                                      and g._threads >= OPENVINO_STREAMS for g, _ in calls)
+    if not together:
+        yield from (generator(*inputs) for generator, inputs in calls)
+        return
+    running = deque()  # (request, the arrays it reads), oldest first
+    try:
+        for index, (generator, inputs) in enumerate(calls):
+            if len(running) == OPENVINO_STREAMS:
+                yield _finished(*running.popleft())
+            # the call OPENVINO_STREAMS before this one, the last to use this slot, is finished
+            arrays = generator._arrays(inputs)
+            request = generator._sized_requests(*arrays[0].shape[2:], OPENVINO_STREAMS)[index % OPENVINO_STREAMS]
+            request.start_async(arrays, share_inputs=True)
+            running.append((request, arrays))
+        while running:
+            yield _finished(*running.popleft())
+    finally:  # stopped early (an error, a caller that gave up): no request may read freed arrays
+        for request, _ in running:
+            request.wait()
 
 
 def _tensor(output: np.ndarray) -> Tensor:

@@ -10,11 +10,13 @@ in an untiled run and as at the borders of the 128x128 training patches. Any siz
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import torch
 from torch import Tensor, nn
 
 from ..nets.generator import Generator
+from .engines import run_together
 
 
 CPU_TILE = 320
@@ -70,21 +72,36 @@ def axis_windows(size: int, tile: int, halo: int, align: int = 1) -> list[tuple[
     return windows
 
 
+Window = tuple[tuple[int, int, int, int], tuple[int, int, int, int]]
+"""A tile: its (core_start, core_end, crop_start, crop_end) along the rows, then the columns."""
+
+
+def tile_calls(noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
+               base: Tensor | None = None) -> tuple[list[Window], list[tuple[Tensor, ...]]]:
+    """The tiles of (1, C, H, W) inputs and each tile's generator inputs (views of its crop)."""
+    _, _, height, width = noisy.shape
+    windows = [(rows, columns) for rows in axis_windows(height, tile, halo, align)
+               for columns in axis_windows(width, tile, halo, align)]
+    crops = [(..., slice(cy0, cy1), slice(cx0, cx1)) for (_, _, cy0, cy1), (_, _, cx0, cx1) in windows]
+    return windows, [(noisy[crop], feats[crop], *(() if base is None else (base[crop],))) for crop in crops]
+
+
+def paste(windows: list[Window], outputs: Iterable[Tensor], like: Tensor) -> Tensor:
+    """The tiles' outputs (in `windows`' order) as one float32 (1, 3, H, W) image of `like`'s size: each
+    tile's core."""
+    _, _, height, width = like.shape
+    out = torch.empty((1, 3, height, width), dtype=torch.float32, device=like.device)
+    for ((y0, y1, cy0, _), (x0, x1, cx0, _)), output in zip(windows, outputs, strict=True):
+        out[..., y0:y1, x0:x1] = output[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
+    return out
+
+
 def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
               base: Tensor | None = None) -> Tensor:
     """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
     With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
-    untiled call up to float rounding. A generator with a `map` method (engines.OnnxGenerator) is given
-    all tiles at once, to run several together.
+    untiled call up to float rounding. An exported graph runs several tiles at once (engines.run_together).
     """
-    _, _, height, width = noisy.shape
-    out = torch.empty((1, 3, height, width), dtype=torch.float32, device=noisy.device)
-    windows = [(rows, columns) for rows in axis_windows(height, tile, halo, align)
-               for columns in axis_windows(width, tile, halo, align)]
-    crops = [(..., slice(cy0, cy1), slice(cx0, cx1)) for (_, _, cy0, cy1), (_, _, cx0, cx1) in windows]
-    calls = [(noisy[crop], feats[crop], *(() if base is None else (base[crop],))) for crop in crops]
-    outputs = generator.map(calls) if hasattr(generator, "map") else (generator(*call) for call in calls)
-    for ((y0, y1, cy0, _), (x0, x1, cx0, _)), output in zip(windows, outputs):
-        out[..., y0:y1, x0:x1] = output[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
-    return out
+    windows, calls = tile_calls(noisy, feats, tile, halo, align, base)
+    return paste(windows, run_together([(generator, call) for call in calls]), noisy)
