@@ -12,18 +12,18 @@ engine (eval.engine of configs/default.toml) in its default precision, the lines
 small and paper are the [model] of configs/default.toml and configs/paper.toml; small+oidn is the small
 admc+oidn refiner on the default bases (tile.refiner_base), whose call runs OIDN per branch first;
 small-slim is the small model with one CFM layer per residual block and one-layer condition nets
-(model.cfm_per_block = model.condition_layers = 1); small-unet is the small model on the multi-scale
-body (model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run is one FullImageDenoiser
-call (eval.keep_resolved as configs/default.toml sets it); "network" is the generators' share
-(synchronised: on CUDA it ends with the copy back to the host), "total" adds sanitising and the log
-transforms. After --warmup untimed runs each, the precisions and the baselines take turns run by run
-(a busy machine slows them alike); figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in
-OpenVINO (the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and
-the ONNX engines run on a CPU only (model/inference/engines.py). By default the image runs in the denoiser's own tiles with the
-receptive-field halo (tiling.default_tile: 320 on a CPU, 640 in OpenVINO, 512 on a GPU, at least 8 halos), as
-`admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one piece, which on a
-2-core CPU is about twice as slow at 1280x720 in torch (whole-image convs leave the caches) and within the
-run-to-run spread of tiles of 640 in OpenVINO (docs/engines.md).
+(model.cfm_per_block = model.condition_layers = 1); small-unet is the small model on the multi-scale body
+(model.backbone = "unet"), whose tiles need a 116-px halo. Each timed run is one FullImageDenoiser call
+(eval.keep_resolved as configs/default.toml sets it); "network" is the generators' share (synchronised: on
+CUDA it ends with the copy back to the host), "total" adds sanitising and the log transforms. After --warmup
+untimed runs each, the precisions and the baselines take turns run by run (a busy machine slows them alike);
+figures are medians over --repeats. bfloat16 is autocast in torch and INFERENCE_PRECISION_HINT in OpenVINO
+(the default on CUDA and on CPUs with AVX512-BF16 or AMX); ONNX Runtime runs float32 only, and the ONNX
+engines run on a CPU only (model/inference/engines.py). By default the image runs in the denoiser's own
+tiles with the receptive-field halo (tiling.default_tile: 320 on a CPU, 640 in OpenVINO, 512 on a GPU, at
+least 8 halos), as `admc-pipe denoise` and eval do; --tile N sets the core edge, --tile 0 runs it in one
+piece, which on a 2-core CPU is about twice as slow at 1280x720 in torch (whole-image convs leave the
+caches) and within the run-to-run spread of tiles of 640 in OpenVINO (docs/engines.md).
 """
 from __future__ import annotations
 

@@ -16,7 +16,6 @@ import torch
 from torch import Tensor, nn
 
 from ..nets.generator import Generator
-from .engines import run_together
 
 
 CPU_TILE = 320
@@ -101,7 +100,8 @@ def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, hal
     """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
     With halo >= receptive_radius(generator) and align = generator.alignment the result equals the
-    untiled call up to float rounding. An exported graph runs several tiles at once (engines.run_together).
+    untiled call up to float rounding. The tiles run in turn; the denoiser hands an exported graph's tiles
+    to engines.run_together instead, to run several at once.
     """
     windows, calls = tile_calls(noisy, feats, tile, halo, align, base)
-    return paste(windows, run_together([(generator, call) for call in calls]), noisy)
+    return paste(windows, (generator(*call) for call in calls), noisy)
