@@ -53,6 +53,8 @@ WHOLE_IMAGE = (slice(None), slice(None))
 MISSING_DEPTH = 1.0
 """Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
 environment pixels (no geometry information), and coverage 1."""
+MISSING_LAYERS = {"depth": MISSING_DEPTH, "coverage": 1.0}
+"""What fills a layer the input lacks, at every pixel."""
 
 # Largest log value an input can take; network outputs are clamped to it so the inverse stays finite.
 LOG_MAX = {
@@ -419,7 +421,7 @@ def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarr
 
 def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
                     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
-    """Check shapes, fill a missing depth/coverage (MISSING_DEPTH, 1) and sanitize every layer, and the
+    """Check shapes, fill a missing depth/coverage (MISSING_LAYERS) and sanitize every layer, and the
     `variances` (names of buffers.VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
 
     Returns the clean float32 layers and, per layer with any repair, the nonzero counts of NaN,
@@ -437,8 +439,8 @@ def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = 
     if size[0] < 1 or size[1] < 1:
         raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
     filled = dict(layers)
-    filled.setdefault("depth", np.full((*size, 1), MISSING_DEPTH, dtype=np.float32))
-    filled.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
+    for name, value in MISSING_LAYERS.items():
+        filled.setdefault(name, np.full((*size, 1), value, dtype=np.float32))
     clean, report = {}, {}
     for name in (*DENOISER_LAYERS, *variances):
         if name in filled:

@@ -18,16 +18,20 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from admc.common.buffers import LAYERS, VARIANCE_LAYERS
 from admc.common.layout import BASE_QUALITIES, FEATURE_CHANNELS
+from admc.common.metrics import RELMSE_EPS
 
 from ..nets.generator import Generator
 from ..transforms import NOISE_STD_UNIT
+from . import exposure, resolved
 
 OPSET = 17
 """ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""
 MANIFEST_NAME = "admc.json"
 FORMAT = "admc-onnx"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2 added `missing`, `variance`, `exposure` and `keep_resolved`: what `admc-pipe denoise` does around the graphs."""
 
 
 INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "base": 3}
@@ -77,8 +81,11 @@ def generator_graph(generator: Generator) -> bytes:
     return graph.getvalue()
 
 
-def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float]) -> dict:
-    """What a renderer must run around the graphs, JSON-ready (see docs/engines.md)."""
+def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float],
+                    missing: dict[str, float]) -> dict:
+    """What a renderer must run around the graphs, JSON-ready (see docs/engines.md); `missing` is the constant
+    a layer the input lacks is filled with (depth, coverage). examples/onnx_denoise.py follows it and
+    nothing else, and tests/test_export_consumer.py checks that it gives what `admc-pipe denoise` gives."""
     first = next(iter(generators.values()))
     halo = max(g.receptive_radius() for g in generators.values())
     return {
@@ -106,6 +113,38 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "denoised": "the branch in its log domain: clamp to [0, log_max], invert with transform.*_inverse",
             "log_max": log_max,
             "environment": "where coverage = 0 keep the input (noisy) value instead of the output",
+        },
+        "missing": {**missing, "rule": "a layer the input lacks is this constant at every pixel"},
+        "variance": {
+            "layers": dict(zip(("diffuse", "specular"), VARIANCE_LAYERS)),
+            "what": "the render's variance of each pixel's mean, per branch, RGB (optional: keep_resolved uses it)",
+            "sanitize": {"min": LAYERS[VARIANCE_LAYERS[0]].low, "max": LAYERS[VARIANCE_LAYERS[0]].high,
+                         "nan": LAYERS[VARIANCE_LAYERS[0]].nan},
+        },
+        "exposure": {
+            "trained_brightness": exposure.TRAINED_BRIGHTNESS,
+            "luminance": [float(w) for w in exposure.LUMINANCE],
+            "lit": exposure.LIT,
+            "rule": "gain k = 2^n multiplies the sanitised diffuse and specular (and the variances by k^2) before "
+                    "everything else, OIDN's bases included, and divides both denoised branches after the inverse. "
+                    "level = exp(mean(log(L))) over the pixels of diffuse + specular whose luminance L = "
+                    "luminance . RGB exceeds lit; k = 1 if there are none or level >= trained_brightness, else "
+                    "n = max(0, min(round(log2(trained_brightness / level)), floor(log2(radiance_max / peak)))), "
+                    "peak = the largest value of diffuse + specular (if > 0)",
+        },
+        "keep_resolved": {
+            "radius": resolved.RADIUS,
+            "margin": resolved.MARGIN,
+            "converged": resolved.CONVERGED,
+            "unsampled": resolved.UNSAMPLED,
+            "relmse_eps": RELMSE_EPS,
+            "rule": "last, per branch with a variance layer, on the outputs after the inverse (and / k): "
+                    "m(x) = (x.R + x.G + x.B) / 3; box(x) = mean over the (2 radius + 1)^2 window, the image "
+                    "mirrored at its edges (d c b a | a b c d); s = m(diffuse + specular)^2 + relmse_eps, both "
+                    "branches as denoised before this step; v = max(box(m(variance) / s), 0); resolved = v < converged and "
+                    "box(variance is 0 in all of R, G, B) <= unsampled; b = box(m((out - noisy)^2) / s) - v (1 + "
+                    "margin sqrt(2) / (2 radius + 1)); w = clip(b / max(b + v, 1e-30), 0, 1) where resolved and "
+                    "b > 0, else 0; out += w (noisy - out), noisy being the sanitised input",
         },
         "eps": transform["eps"],
         **({"noise_std_unit": NOISE_STD_UNIT} if first.config.noise_input else {}),

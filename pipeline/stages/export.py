@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from admc.errors import AdmcError
-from admc.model.inference.denoiser import LOG_MAX, load_denoiser
+from admc.model.inference.denoiser import LOG_MAX, MISSING_LAYERS, load_denoiser
 from admc.model.inference.export import MANIFEST_NAME, export_generator, export_manifest
 from admc.model.transforms import transform_spec
 from admc.stores.atomic import publishing, write_json
@@ -28,7 +28,7 @@ def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
         for path, generator in zip(written, generators.values()):
             with publishing(path) as tmp:
                 export_generator(generator, tmp)
-        manifest = export_manifest(generators, transform_spec(), LOG_MAX)
+        manifest = export_manifest(generators, transform_spec(), LOG_MAX, MISSING_LAYERS)
         write_json(out_dir / MANIFEST_NAME, {**manifest, "weights": Path(weights).name})
     except OSError as exc:
         raise ExportError(f"{out_dir}: cannot write the export there ({exc.strerror or exc})") from None
