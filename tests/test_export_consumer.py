@@ -41,7 +41,7 @@ def network_domain(layers: dict[str, np.ndarray], out: dict[str, np.ndarray]) ->
 def scene(mi) -> dict:
     """A rough plastic ball and a black box on a checkered floor under a small area light, the sky seen above
     the floor: environment pixels, black albedo, silent pixels (no light, no variance)."""
-    rgb = {"type": "rgb", "value": [60, 55, 50]}
+    light = {"type": "rgb", "value": [60, 55, 50]}
     return {
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,
@@ -51,10 +51,12 @@ def scene(mi) -> dict:
                   "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard",
                                                               "to_uv": mi.ScalarTransform4f().scale(6)}},
                   "to_world": mi.ScalarTransform4f().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(1.5)},
-        "ball": {"type": "sphere", "radius": 0.4, "center": [0.3, -0.1, 0], "bsdf": {"type": "roughplastic", "alpha": 0.1}},
+        "ball": {"type": "sphere", "radius": 0.4, "center": [0.3, -0.1, 0],
+                 "bsdf": {"type": "roughplastic", "alpha": 0.1}},
         "box": {"type": "cube", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}},
                 "to_world": mi.ScalarTransform4f().translate([-0.7, -0.3, 0.6]).scale(0.2)},
-        "light": {"type": "sphere", "radius": 0.1, "center": [-0.8, 1.0, 0.5], "emitter": {"type": "area", "radiance": rgb}},
+        "light": {"type": "sphere", "radius": 0.1, "center": [-0.8, 1.0, 0.5],
+                  "emitter": {"type": "area", "radiance": light}},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}},
     }
 

@@ -125,8 +125,9 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "trained_brightness": exposure.TRAINED_BRIGHTNESS,
             "luminance": [float(w) for w in exposure.LUMINANCE],
             "lit": exposure.LIT,
-            "rule": "gain k = 2^n multiplies the sanitised diffuse and specular (and the variances by k^2) before "
-                    "everything else, OIDN's bases included, and divides both denoised branches after the inverse. "
+            "rule": "gain k = 2^n multiplies the sanitised diffuse and specular (and, for the noise map, the "
+                    "variances by k^2) before everything else, OIDN's bases included, and divides both denoised "
+                    "branches after the inverse. "
                     "level = exp(mean(log(L))) over the pixels of diffuse + specular whose luminance L = "
                     "luminance . RGB exceeds lit; k = 1 if there are none or level >= trained_brightness, else "
                     "n = max(0, min(round(log2(trained_brightness / level)), floor(log2(radiance_max / peak)))), "
@@ -141,10 +142,11 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "rule": "last, per branch with a variance layer, on the outputs after the inverse (and / k): "
                     "m(x) = (x.R + x.G + x.B) / 3; box(x) = mean over the (2 radius + 1)^2 window, the image "
                     "mirrored at its edges (d c b a | a b c d); s = m(diffuse + specular)^2 + relmse_eps, both "
-                    "branches as denoised before this step; v = max(box(m(variance) / s), 0); resolved = v < converged and "
-                    "box(variance is 0 in all of R, G, B) <= unsampled; b = box(m((out - noisy)^2) / s) - v (1 + "
-                    "margin sqrt(2) / (2 radius + 1)); w = clip(b / max(b + v, 1e-30), 0, 1) where resolved and "
-                    "b > 0, else 0; out += w (noisy - out), noisy being the sanitised input",
+                    "branches as denoised before this step; v = max(box(m(variance) / s), 0); resolved = v < "
+                    "converged and box(variance is 0 in all of R, G, B) <= unsampled; b = box(m((out - noisy)^2) "
+                    "/ s) - v (1 + margin sqrt(2) / (2 radius + 1)); w = clip(b / max(b + v, 1e-30), 0, 1) where "
+                    "resolved and b > 0, else 0; out += w (noisy - out); noisy and variance are the sanitised "
+                    "input's, at its own exposure",
         },
         "eps": transform["eps"],
         **({"noise_std_unit": NOISE_STD_UNIT} if first.config.noise_input else {}),
