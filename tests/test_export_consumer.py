@@ -29,13 +29,13 @@ each pixel toward its input by a weight that window means of the same outputs de
 ulps. So the branches are compared in that domain (network_domain), as the networks saw them."""
 
 
-def network_domain(layers: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Each denoised branch as its network's output: at the exposure the networks saw, in its log domain
-    (a relative error, for dark pixels too)."""
+def network_domain(layers: dict[str, np.ndarray], *outputs: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+    """Each output's denoised branches as their networks' outputs: at the exposure the networks saw, in each
+    branch's log domain (a relative error, for dark pixels too)."""
     clean, _ = sanitize_layers(layers)
     gain = np.float32(exposure_gain(clean["diffuse"] + clean["specular"]))
-    return {"diffuse": diffuse_forward(out["diffuse"] * gain, clean["albedo"]),
-            "specular": specular_forward(out["specular"] * gain)}
+    return [{"diffuse": diffuse_forward(out["diffuse"] * gain, clean["albedo"]),
+             "specular": specular_forward(out["specular"] * gain)} for out in outputs]
 
 
 def scene(mi) -> dict:
@@ -113,7 +113,7 @@ def compare(tmp_path, weights: Path, layers: dict[str, np.ndarray]) -> None:
     assert example.returncode == 0, example.stderr
     want, got = read_exr(tmp_path / "admc.exr", OUTPUT_LAYERS), read_exr(tmp_path / "example.exr", OUTPUT_LAYERS)
     assert np.isfinite(got[""]).all() and np.array_equal(got[""], got["diffuse"] + got["specular"])
-    want, got = network_domain(layers, want), network_domain(layers, got)
+    want, got = network_domain(layers, want, got)
     for name in want:
         error = np.abs(got[name] - want[name]).max()
         assert error <= TOLERANCE, (name, error)

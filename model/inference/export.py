@@ -88,6 +88,7 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
     nothing else, and tests/test_export_consumer.py checks that it gives what `admc-pipe denoise` gives."""
     first = next(iter(generators.values()))
     halo = max(g.receptive_radius() for g in generators.values())
+    variance = LAYERS[VARIANCE_LAYERS[0]]  # the variance layers share one rule
     return {
         "format": FORMAT,
         "version": FORMAT_VERSION,
@@ -118,8 +119,7 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
         "variance": {
             "layers": dict(zip(("diffuse", "specular"), VARIANCE_LAYERS)),
             "what": "the render's variance of each pixel's mean, per branch, RGB (optional: keep_resolved uses it)",
-            "sanitize": {"min": LAYERS[VARIANCE_LAYERS[0]].low, "max": LAYERS[VARIANCE_LAYERS[0]].high,
-                         "nan": LAYERS[VARIANCE_LAYERS[0]].nan},
+            "sanitize": {"min": variance.low, "max": variance.high, "nan": variance.nan},
         },
         "exposure": {
             "trained_brightness": exposure.TRAINED_BRIGHTNESS,
