@@ -19,7 +19,7 @@ from pathlib import Path
 from admc.common.layout import BASE_QUALITIES, ENGINE_CHOICES, ENSEMBLES
 from admc.common.oidn import QUALITIES as OIDN_QUALITIES
 from admc.errors import AdmcError
-from admc.model.nets.critic import DOWNSAMPLING
+from admc.model.nets.configs import DOWNSAMPLING
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.settings import TrainSettings
 

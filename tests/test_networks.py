@@ -4,7 +4,8 @@ import torch
 
 from admc.model.nets.critic import Critic, CriticConfig
 from admc.model.nets.encoder import EncoderNet
-from admc.model.nets.generator import MODES, CFMLayer, Generator, GeneratorConfig
+from admc.model.nets.configs import MODES
+from admc.model.nets.generator import CFMLayer, Generator, GeneratorConfig
 from admc.model.nets.losses import generator_loss
 
 TINY = dict(channels=8, blocks=2, cond_channels=8, encoder_channels=16)

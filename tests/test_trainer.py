@@ -12,7 +12,7 @@ import zarr
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store, preset
-from admc.model.nets.generator import MODES
+from admc.model.nets.configs import MODES
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows

@@ -79,12 +79,13 @@ def test_multilayer_without_specular_or_depth_is_diffuse_only_with_constant_dept
     source = tmp_path / "plain.exr"
     write_exr(source, {k: b[k] for k in ("diffuse", "albedo", "normal")})
     loaded = load_denoise_input(source)
-    np.testing.assert_array_equal(loaded.layers["depth"], np.ones((H, W, 1), np.float32))
-    np.testing.assert_array_equal(loaded.layers["coverage"], np.ones((H, W, 1), np.float32))
+    assert "depth" not in loaded.layers and "coverage" not in loaded.layers  # the denoiser fills them
     assert any("no specular" in n for n in loaded.notes)
-    assert any("constant depth feature 1.0" in n for n in loaded.notes)
+    assert any("constant depth feature 1.0" in n and "coverage 1" in n for n in loaded.notes)
     result = denoiser(loaded.layers)
     assert result.branches == ("diffuse",)
+    ones = np.ones((H, W, 1), np.float32)
+    np.testing.assert_array_equal(result.image, denoiser(dict(loaded.layers, depth=ones, coverage=ones)).image)
     out = tmp_path / "plain.out.exr"
     write_denoised(out, result, source=loaded)
     channels = set(OpenEXR.File(str(out), separate_channels=True).channels())
@@ -98,7 +99,7 @@ def test_oidn_files_with_one_colour_are_diffuse_only(tmp_path, denoiser, given):
     b = buffers(1)
     oidn_files(tmp_path, b)
     loaded = load_denoise_input(tmp_path / given)
-    assert set(loaded.layers) == {"diffuse", "albedo", "normal", "depth", "coverage"}
+    assert set(loaded.layers) == {"diffuse", "albedo", "normal"}  # depth and coverage: the denoiser fills them
     np.testing.assert_array_equal(loaded.layers["diffuse"], b["diffuse"] + b["specular"])
     np.testing.assert_array_equal(loaded.layers["normal"], b["normal"])
     assert loaded.sources["albedo"] == tmp_path / "shot.alb.exr"

@@ -6,34 +6,13 @@ because the WGAN-GP penalty is defined per sample and BatchNorm couples the samp
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor, nn
 
+from .configs import DOWNSAMPLING, CriticConfig
 from .generator import scaled_kaiming_
 
-NORMS = ("none", "layer", "batch")
-DOWNSAMPLING = 32  # five stride-2 convs
 HIDDEN_UNITS = 100
-
-
-@dataclass(frozen=True)
-class CriticConfig:
-    """Width, normalisation and input patch size; the defaults are the paper's (~14.5 M params)."""
-
-    base_channels: int = 64
-    norm: str = "layer"
-    patch_size: int = 128
-
-    def __post_init__(self) -> None:
-        if self.norm not in NORMS:
-            raise ValueError(f"CriticConfig.norm: {self.norm!r} is not one of {NORMS}")
-        if not isinstance(self.base_channels, int) or self.base_channels < 1:
-            raise ValueError(f"CriticConfig.base_channels: must be a positive int, got {self.base_channels!r}")
-        if not isinstance(self.patch_size, int) or self.patch_size < DOWNSAMPLING or self.patch_size % DOWNSAMPLING:
-            raise ValueError(f"CriticConfig.patch_size: must be a positive multiple of {DOWNSAMPLING}, "
-                             f"got {self.patch_size!r}")
 
 
 def _norm(kind: str, channels: int) -> nn.Module:

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 from admc.common.layout import BASES
 
 from ..checks import positive_ints, require
-from .critic import NORMS, CriticConfig
-from .generator import BACKBONES, MODES, MODULATED_MODES, GeneratorConfig
+from .configs import BACKBONES, MODES, MODULATED_MODES, NORMS, CriticConfig, GeneratorConfig
 
 
 @dataclass(frozen=True)

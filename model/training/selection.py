@@ -23,12 +23,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}  # train.select_metric -> its name in notes
-SELECT_METRICS = tuple(LABELS)
+from .settings import SELECT_METRIC_LABELS
 
 
 def selection_values(metric: str, per_patch: dict[str, Tensor], scores: dict[str, float]) -> Tensor:
-    """The per-patch values that rank validated steps under `metric` (one of SELECT_METRICS)."""
+    """The per-patch values that rank validated steps under `metric` (one of settings.SELECT_METRICS)."""
     if metric == "relmse":
         return per_patch["relmse"]
     shares = [per_patch[k] / max(scores[f"noisy_{k}"], 1e-12) for k in ("relmse", "one_minus_ssim")]
@@ -113,7 +112,7 @@ class BestNetworks:
 
     def summary(self, last_step: int, last: dict[str, float]) -> tuple[dict[str, dict], list[str]]:
         """({branch: {"step", selected_key}}, sentences for the user) for the weights this run ships."""
-        selected, notes, label = {}, [], LABELS[self.metric]
+        selected, notes, label = {}, [], SELECT_METRIC_LABELS[self.metric]
         for branch, best in self.best.items():
             selected[branch] = {"step": best.step, selected_key(self.metric): best.value}
             unproven = self.unproven.get(branch)

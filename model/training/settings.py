@@ -12,7 +12,10 @@ from dataclasses import dataclass
 from admc.common.layout import BRANCHES
 
 from ..checks import non_negative_ints, positive_ints, require
-from .selection import SELECT_METRICS
+
+SELECT_METRIC_LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}
+"""train.select_metric -> its name in notes (selection.py: what each ranks by)."""
+SELECT_METRICS = tuple(SELECT_METRIC_LABELS)
 
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")

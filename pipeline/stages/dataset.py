@@ -7,7 +7,7 @@ import admc
 from admc.common import buffers, oidn
 from admc.model import transforms
 from admc.model.inference import oidn_base
-from admc.model.nets.critic import DOWNSAMPLING
+from admc.model.nets.configs import DOWNSAMPLING
 from admc.pipeline.config import Config, ConfigError
 from admc.pipeline.dataset import tile
 from admc.pipeline.engine import runner

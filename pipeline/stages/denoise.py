@@ -13,9 +13,10 @@ Two layouts are accepted:
   trained on: expect it blurrier than with a proper split).
 
 Missing depth becomes the constant depth feature 1.0 (the value of environment pixels, so no false
-geometry edges) with coverage 1. NaN/Inf pixels are not errors: they are counted here and repaired
-by the denoiser, which reports what it did. Everything else that is wrong raises DenoiseInputError
-(or ExrError from the reader) naming the file.
+geometry edges) with coverage 1: the denoiser fills them (MISSING_LAYERS), this module says so.
+NaN/Inf pixels are not errors: they are counted here and repaired by the denoiser, which reports what
+it did. Everything else that is wrong raises DenoiseInputError (or ExrError from the reader) naming
+the file.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, VARIANCE_LAYERS
 from admc.errors import AdmcError
-from admc.model.inference.denoiser import MISSING_DEPTH, DenoiseResult
+from admc.model.inference.denoiser import MISSING_LAYERS, DenoiseResult
 from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
@@ -42,7 +43,7 @@ class DenoiseInputError(AdmcError, ValueError):
 class DenoiseInput:
     """Layers ready for FullImageDenoiser, where each came from, and what was assumed."""
 
-    layers: dict[str, np.ndarray]                 # diffuse, [specular], albedo, normal, depth, coverage
+    layers: dict[str, np.ndarray]                 # diffuse, [specular], albedo, normal, [depth], [coverage]
     sources: dict[str, Path]                      # layer -> the file it was read from
     notes: list[str] = field(default_factory=list)
 
@@ -91,7 +92,7 @@ def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
     if "specular" not in layers:
         notes.append(f"{path.name}: no specular layer, only the diffuse network runs")
     result = DenoiseInput(layers, {name: path for name in layers}, notes)
-    _complete_depth(result, path.name)
+    _note_missing_depth(result, path.name)
     return result
 
 
@@ -128,7 +129,7 @@ def _load_separate(base: Path, given: Path) -> DenoiseInput:
     else:
         notes = []
     result = DenoiseInput(layers, sources, notes)
-    _complete_depth(result, base.name)
+    _note_missing_depth(result, base.name)
     return result
 
 
@@ -150,14 +151,11 @@ def _check_sizes(layers: dict[str, np.ndarray], sources: dict[str, Path]) -> Non
         raise DenoiseInputError(f"{sources['diffuse'].parent}: the input files differ in size ({listing}, as HxW)")
 
 
-def _complete_depth(result: DenoiseInput, where: str) -> None:
-    """Depth and coverage the denoiser needs, filled where the input has none (and said so)."""
-    size = result.layers["diffuse"].shape[:2]
+def _note_missing_depth(result: DenoiseInput, where: str) -> None:
+    """Tell the user that the denoiser will fill an absent depth (and coverage) with MISSING_LAYERS' values."""
     if "depth" not in result.layers:
-        result.layers["depth"] = np.full((*size, 1), MISSING_DEPTH, dtype=np.float32)
-        result.notes.append(f"{where}: no depth, using the constant depth feature {MISSING_DEPTH} "
-                            f"(as for environment pixels) and coverage 1")
-    result.layers.setdefault("coverage", np.ones((*size, 1), dtype=np.float32))
+        result.notes.append(f"{where}: no depth, using the constant depth feature {MISSING_LAYERS['depth']} "
+                            f"(as for environment pixels) and coverage {MISSING_LAYERS['coverage']}")
 
 
 def output_paths(inputs: list[Path], output: Path | None = None) -> list[Path]:
