@@ -26,6 +26,17 @@ def test_every_command_has_help(command):
     assert out.returncode == 0 and "Usage" in out.stdout
 
 
+def test_the_cli_and_its_config_load_without_torch():
+    """--help, `config` and argument errors answer in well under a second only if importing the CLI (and
+    the config checks it runs) leaves torch alone: torch alone takes about 2 s to import."""
+    import sys
+
+    code = "import sys, admc.cli.app; print(sorted(m for m in ('torch', 'mitsuba', 'openvino') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def _oidn_style_input(folder: Path) -> Path:
     from admc.stores.exr import write_exr
 
