@@ -100,14 +100,26 @@ CASES = {"as rendered": lambda layers: layers, "dim": dim, "broken": broken,
          "without depth and coverage": without_depth_and_coverage}
 
 
-def compare(tmp_path, weights: Path, layers: dict[str, np.ndarray]) -> None:
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """Weights file -> its export folder, exported once per module (about 2 s each)."""
+    folders: dict[Path, Path] = {}
+
+    def export(weights: Path) -> Path:
+        if weights not in folders:
+            folders[weights] = tmp_path_factory.mktemp("onnx")
+            export_onnx(weights, folders[weights])
+        return folders[weights]
+    return export
+
+
+def compare(tmp_path, export_folder: Path, weights: Path, layers: dict[str, np.ndarray]) -> None:
     render_file = tmp_path / "render.exr"
     write_exr(render_file, layers, precision="float")
-    export_onnx(weights, tmp_path / "onnx")
     admc = run("denoise", str(render_file), "-o", str(tmp_path / "admc.exr"), "--engine", "onnxruntime",
                "--weights", str(weights))
     assert admc.returncode == 0, admc.stderr
-    example = subprocess.run([sys.executable, str(EXAMPLE), str(tmp_path / "onnx"), str(render_file),
+    example = subprocess.run([sys.executable, str(EXAMPLE), str(export_folder), str(render_file),
                               str(tmp_path / "example.exr"), "--tile", "20"],
                              capture_output=True, text=True, timeout=300)
     assert example.returncode == 0, example.stderr
@@ -121,21 +133,24 @@ def compare(tmp_path, weights: Path, layers: dict[str, np.ndarray]) -> None:
 
 
 @pytest.mark.parametrize("case", list(CASES))
-def test_the_example_denoises_as_admc_does(tmp_path, render, case):
+def test_the_example_denoises_as_admc_does(tmp_path, render, exported, case):
     layers = CASES[case](render)
     if case == "dim":
         assert exposure_gain(layers["diffuse"] + layers["specular"]) == 64.0
-    compare(tmp_path, WEIGHTS_DIR / "admc-small-pretrained.pt", layers)
+    weights = WEIGHTS_DIR / "admc-small-pretrained.pt"
+    compare(tmp_path, exported(weights), weights, layers)
 
 
-def test_the_example_runs_a_refiner_on_oidn_bases_as_admc_does(tmp_path, render):
-    compare(tmp_path, WEIGHTS_DIR / "admc-small-refiner.pt", dim(render))
+def test_the_example_runs_a_refiner_on_oidn_bases_as_admc_does(tmp_path, render, exported):
+    weights = WEIGHTS_DIR / "admc-small-refiner.pt"
+    compare(tmp_path, exported(weights), weights, dim(render))
 
 
-def test_the_example_feeds_the_noise_map_as_admc_does(tmp_path, render):
+def test_the_example_feeds_the_noise_map_as_admc_does(tmp_path, render, exported):
     from conftest import noise_input_weights
 
-    compare(tmp_path, noise_input_weights(tmp_path / "noise.pt"), dim(render))
+    weights = noise_input_weights(tmp_path / "noise.pt")
+    compare(tmp_path, exported(weights), weights, dim(render))
 
 
 def test_the_example_imports_nothing_of_admc():
