@@ -220,7 +220,6 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.stages.denoise import DenoiseInputError, check_output_path, load_denoise_input, output_paths
-    from admc.pipeline.weights import load_model
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -234,7 +233,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
         try:
             source = load_denoise_input(path)
             check_output_path(target, source)
-            if model is None:  # after the first input checks out
+            if model is None:  # after the first input checks out, so a bad one is named without loading torch
+                from admc.pipeline.weights import load_model
                 model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
                                    engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)

@@ -37,6 +37,21 @@ def test_the_cli_and_its_config_load_without_torch():
     assert out.stdout.strip() == "[]"
 
 
+def test_denoise_names_a_bad_input_without_loading_torch(tmp_path):
+    """A missing or unreadable file is reported before the weights (and torch) are loaded."""
+    import sys
+
+    (tmp_path / "broken.exr").write_bytes(b"not an EXR")
+    code = ("import sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
+            "for name in sys.argv[1:]:\n"
+            "    result = CliRunner().invoke(app, ['denoise', name])\n"
+            "    print(result.exit_code, 'torch' in sys.modules)")
+    files = [str(tmp_path / "missing.exr"), str(tmp_path / "broken.exr")]
+    out = subprocess.run([sys.executable, "-c", code, *files], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["2", "False", "2", "False"]
+
+
 def _oidn_style_input(folder: Path) -> Path:
     from admc.stores.exr import write_exr
 

@@ -4,7 +4,8 @@ import pytest
 import torch
 from torch import nn
 
-from admc.model.inference.denoiser import LOG_MAX, MISSING_DEPTH, FullImageDenoiser
+from admc.common.buffers import MISSING_DEPTH
+from admc.model.inference.denoiser import LOG_MAX, FullImageDenoiser
 from admc.model.inference.tiling import CPU_TILE, GPU_TILE, OPENVINO_TILE, axis_windows, default_tile, receptive_radius, run_tiled
 from admc.model.nets.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
 from admc.model.transforms import EPS, diffuse_forward, specular_forward

@@ -55,6 +55,11 @@ DENOISER_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth", "coverage
 """What a denoiser reads: the two radiance branches and the sources of the feature channels."""
 VARIANCE_LAYERS = ("diffuse_var", "specular_var")
 """What a denoiser with model.noise_input reads besides: each branch's noise, as the renderer measured it."""
+MISSING_DEPTH = 1.0
+"""Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
+environment pixels (no geometry information), and coverage 1."""
+MISSING_LAYERS = {"depth": MISSING_DEPTH, "coverage": 1.0}
+"""What fills a layer the input lacks, at every pixel."""
 
 
 def sanitize(x: np.ndarray, name: str) -> tuple[np.ndarray, dict[str, int]]:

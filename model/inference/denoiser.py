@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from admc.common.buffers import DENOISER_LAYERS, LAYERS, sanitize
+from admc.common.buffers import DENOISER_LAYERS, LAYERS, MISSING_LAYERS, sanitize
 from admc.common.diff import differing_keys
 from admc.common.threads import torch_inline
 from admc.errors import AdmcError
@@ -50,12 +50,6 @@ from .tiling import default_tile, paste, receptive_radius, tile_calls
 
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
 WHOLE_IMAGE = (slice(None), slice(None))
-MISSING_DEPTH = 1.0
-"""Depth given to images that have none: every pixel then gets the depth feature 1.0, the value of
-environment pixels (no geometry information), and coverage 1."""
-MISSING_LAYERS = {"depth": MISSING_DEPTH, "coverage": 1.0}
-"""What fills a layer the input lacks, at every pixel."""
-
 # Largest log value an input can take; network outputs are clamped to it so the inverse stays finite.
 LOG_MAX = {
     "diffuse": float(np.log1p(RADIANCE_MAX / EPS)),

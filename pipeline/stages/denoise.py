@@ -22,13 +22,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from admc.common.buffers import BEAUTY, DENOISER_LAYERS, VARIANCE_LAYERS
+from admc.common.buffers import BEAUTY, DENOISER_LAYERS, MISSING_LAYERS, VARIANCE_LAYERS
 from admc.errors import AdmcError
-from admc.model.inference.denoiser import MISSING_LAYERS, DenoiseResult
 from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
+
+if TYPE_CHECKING:  # reading and checking the input needs no torch, so a bad file is named in a second
+    from admc.model.inference.denoiser import DenoiseResult
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
             "specular": ".specular.exr", "depth": ".depth.exr"}
