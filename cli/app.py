@@ -45,6 +45,8 @@ def _user_errors(fn):
 
 
 def _load(config: Optional[Path], overrides: Optional[list[str]], scheduler: Optional[str] = None):
+    """The checked config. Commands call this before importing their stage, so a missing config file or a
+    bad key is named in well under a second, before torch and Mitsuba load."""
     items = list(overrides or [])
     if scheduler:
         items.append(f"run.scheduler={scheduler}")
@@ -55,9 +57,9 @@ def _load(config: Optional[Path], overrides: Optional[list[str]], scheduler: Opt
 @_user_errors
 def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
     """Render the scene corpus: one multi-layer EXR + JSON sidecar per (scene, spp), plus a reference."""
+    cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.render import render_corpus
 
-    cfg = _load(config, set_, scheduler)
     result = render_corpus(cfg)
     for note in result.notes:
         console.print(note, markup=False)
@@ -117,9 +119,9 @@ def _print_dataset(result, workdir: str) -> None:
 def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
             summary: Annotated[bool, typer.Option("--summary", help="Only summarise the existing store.")] = False) -> None:
     """Render + tile as one graph: the corpus into the 128x128 FP16 Zarr patch store (cached, incremental)."""
+    cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.dataset import build_dataset, existing_dataset
 
-    cfg = _load(config, set_, scheduler)
     result = existing_dataset(cfg) if summary else build_dataset(cfg)
     if not summary:
         console.print(f"{result.executed} tasks run, {result.cached} cached; renders in {result.renders_dir}")
@@ -130,9 +132,9 @@ def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerO
 @_user_errors
 def tile(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None) -> None:
     """Tile already-rendered EXR sets into the patch store (renders nothing: run `render` first)."""
+    cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.dataset import build_dataset
 
-    cfg = _load(config, set_, scheduler)
     result = build_dataset(cfg, render_missing=False)
     console.print(f"{result.executed} tile tasks run, {result.cached} cached")
     _print_dataset(result, cfg.run.workdir)
@@ -156,9 +158,9 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
 
     An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer).
     Several processes (--nproc N, or `torchrun --nproc_per_node N -m admc.cli train ...`) split each batch."""
+    cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.train import interrupted_note, run_training
 
-    cfg = _load(config, set_, scheduler)
     try:
         result = run_training(cfg, stage.value, init_from=init, restart=restart, nproc=nproc)
     except KeyboardInterrupt:
@@ -293,11 +295,11 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
                                                  "and OptiX where CUDA runs).")] = False) -> None:
     """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
     time, an HTML page."""
-    from admc.pipeline.stages.evaluate import learned_denoisers, run_eval
-
     cfg = _load(config, set_, scheduler)
     if no_model and weights:
         raise typer.BadParameter("--no-model and --weights contradict each other; give one")
+    from admc.pipeline.stages.evaluate import learned_denoisers, run_eval
+
     extra = [] if no_model else learned_denoisers(cfg, weights, device)
     for model in extra:
         console.print(f"weights{'' if model.name == 'admc' else ' ' + model.name}: {model.source}")
@@ -327,10 +329,10 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
           clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
           stage: Annotated[Optional[str], typer.Option(help="Only this stage: render or tile.")] = None) -> None:
     """Show what is cached (per stage: entries and size), or clear it."""
+    cfg = _load(config, set_)
     from admc.pipeline.stages.corpus import check_cached_stage, open_cache
 
     check_cached_stage(stage)
-    cfg = _load(config, set_)
     store = open_cache(cfg)
     if clear:
         removed = store.clear(stage)

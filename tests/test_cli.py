@@ -52,6 +52,24 @@ def test_denoise_names_a_bad_input_without_loading_torch(tmp_path):
     assert out.stdout.split() == ["2", "False", "2", "False"]
 
 
+@pytest.mark.parametrize("command", ["render", "dataset", "tile", "train", "eval", "cache"])
+def test_a_bad_config_is_named_before_torch_loads(command, tmp_path):
+    """Each command checks its config before importing its stage (torch, Mitsuba: seconds)."""
+    import sys
+
+    code = ("import sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
+            "result = CliRunner().invoke(app, sys.argv[1:])\n"
+            "print(result.exit_code, [m for m in ('torch', 'mitsuba') if m in sys.modules])\n"
+            "print(result.output)")
+    for args, named in ((["--config", str(tmp_path / "missing.toml")], "missing.toml"),
+                        (["--set", "train.nope=1"], "train.nope")):
+        out = subprocess.run([sys.executable, "-c", code, command, *args], capture_output=True, text=True,
+                             timeout=120, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+        status, _, output = out.stdout.partition("\n")
+        assert status == "2 []" and named in output
+
+
 def _oidn_style_input(folder: Path) -> Path:
     from admc.stores.exr import write_exr
 
