@@ -1,5 +1,7 @@
 """The command line as a person meets it: --help, wrong arguments, missing files."""
+import json
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,12 +28,27 @@ def test_every_command_has_help(command):
     assert out.returncode == 0 and "Usage" in out.stdout
 
 
+HEAVY = ("torch", "mitsuba", "openvino")
+"""Modules that take seconds to import: the CLI must not load them before it needs them."""
+
+
+def invoke_in_fresh_python(*calls: list[str], cwd=None) -> list[tuple[int, list[str], str]]:
+    """Run each call's CLI arguments in turn in one new interpreter; per call its exit code, the HEAVY modules
+    loaded so far and its output."""
+    code = ("import json, sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
+            "for args in json.loads(sys.argv[1]):\n"
+            "    result = CliRunner().invoke(app, args)\n"
+            f"    print(json.dumps([result.exit_code, [m for m in {HEAVY!r} if m in sys.modules], result.output]))")
+    out = subprocess.run([sys.executable, "-c", code, json.dumps(calls)], capture_output=True, text=True,
+                         timeout=120, cwd=cwd)
+    assert out.returncode == 0, out.stderr
+    return [tuple(json.loads(line)) for line in out.stdout.splitlines()]
+
+
 def test_the_cli_and_its_config_load_without_torch():
     """--help, `config` and argument errors answer in well under a second only if importing the CLI (and
     the config checks it runs) leaves torch alone: torch alone takes about 2 s to import."""
-    import sys
-
-    code = "import sys, admc.cli.app; print(sorted(m for m in ('torch', 'mitsuba', 'openvino') if m in sys.modules))"
+    code = f"import sys, admc.cli.app; print(sorted(m for m in {HEAVY!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
@@ -39,35 +56,20 @@ def test_the_cli_and_its_config_load_without_torch():
 
 def test_denoise_names_a_bad_input_without_loading_torch(tmp_path):
     """A missing or unreadable file is reported before the weights (and torch) are loaded."""
-    import sys
-
     (tmp_path / "broken.exr").write_bytes(b"not an EXR")
-    code = ("import sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
-            "for name in sys.argv[1:]:\n"
-            "    result = CliRunner().invoke(app, ['denoise', name])\n"
-            "    print(result.exit_code, 'torch' in sys.modules)")
-    files = [str(tmp_path / "missing.exr"), str(tmp_path / "broken.exr")]
-    out = subprocess.run([sys.executable, "-c", code, *files], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["2", "False", "2", "False"]
+    results = invoke_in_fresh_python(["denoise", str(tmp_path / "missing.exr")],
+                                     ["denoise", str(tmp_path / "broken.exr")])
+    assert [(code, loaded) for code, loaded, _ in results] == [(2, []), (2, [])]
 
 
 @pytest.mark.parametrize("command", ["render", "dataset", "tile", "train", "eval", "cache"])
 def test_a_bad_config_is_named_before_torch_loads(command, tmp_path):
     """Each command checks its config before importing its stage (torch, Mitsuba: seconds)."""
-    import sys
-
-    code = ("import sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
-            "result = CliRunner().invoke(app, sys.argv[1:])\n"
-            "print(result.exit_code, [m for m in ('torch', 'mitsuba') if m in sys.modules])\n"
-            "print(result.output)")
-    for args, named in ((["--config", str(tmp_path / "missing.toml")], "missing.toml"),
-                        (["--set", "train.nope=1"], "train.nope")):
-        out = subprocess.run([sys.executable, "-c", code, command, *args], capture_output=True, text=True,
-                             timeout=120, cwd=tmp_path)
-        assert out.returncode == 0, out.stderr
-        status, _, output = out.stdout.partition("\n")
-        assert status == "2 []" and named in output
+    cases = {"missing.toml": [command, "--config", str(tmp_path / "missing.toml")],
+             "train.nope": [command, "--set", "train.nope=1"]}
+    results = invoke_in_fresh_python(*cases.values(), cwd=tmp_path)
+    for named, (code, loaded, output) in zip(cases, results, strict=True):
+        assert code == 2 and loaded == [] and named in output
 
 
 def _oidn_style_input(folder: Path) -> Path:
