@@ -156,7 +156,7 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
                                                          "or sharing the CPU); under torchrun leave it out.")] = 1) -> None:
     """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed).
 
-    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps to train longer).
+    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps or train.minutes to train longer).
     Several processes (--nproc N, or `torchrun --nproc_per_node N -m admc.cli train ...`) split each batch."""
     cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.train import interrupted_note, run_training
@@ -175,8 +175,8 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     else:  # the checkpoint already held every step: say so rather than print an empty table
         chosen = ", ".join(f"{b} step {s['step']} (" + ", ".join(f"{k} {v:.4g}" for k, v in s.items() if k != "step") + ")"
                            for b, s in result.selected.items())
-        console.print(f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps to train "
-                      f"longer)" + (f"; the weights hold {chosen}" if chosen else ""), markup=False)
+        console.print(f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps or "
+                      f"train.minutes to train longer)" + (f"; the weights hold {chosen}" if chosen else ""), markup=False)
     if result.skipped_branches:
         console.print(f"skipped branches (no patches): {', '.join(result.skipped_branches)}")
     console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")

@@ -107,6 +107,7 @@ class TileConfig:
     oidn_base: bool
     refiner_base: str
     noise_maps: bool
+    clean_targets: bool
 
     def check(self) -> None:
         # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built
@@ -143,6 +144,7 @@ class EvalConfig:
     engine: str
     also_ensemble_dark: bool
     keep_resolved: bool
+    reference_spp: int
 
     def check(self) -> None:
         _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",
@@ -351,6 +353,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
         sections[field.name] = section
     config = Config(**sections)
     _check_test_set_apart(config)
+    scored = config.eval.reference_spp
+    _require(scored == 0 or scored > max(config.render.spp), "eval.reference_spp",
+             f"must be 0 (render.reference_spp) or exceed every input spp (max {max(config.render.spp)}), got {scored}")
     _require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
              "tile.val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty")
     base = config.model.base

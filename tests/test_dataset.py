@@ -16,11 +16,14 @@ from admc.stores import exr, patches
 ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 
+def tiny_overrides(n_scenes):
+    return ["run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]", "render.reference_spp=16",
+            "corpus.families=['room', 'tabletop']", f"corpus.n_scenes={n_scenes}", "tile.patch_size=32",
+            "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"]
+
+
 def tiny(workdir, n_scenes):
-    return load_config(None, [
-        f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]",
-        "render.reference_spp=16", "corpus.families=['room', 'tabletop']", f"corpus.n_scenes={n_scenes}",
-        "tile.patch_size=32", "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"])
+    return load_config(None, [f"run.workdir='{workdir}'", *tiny_overrides(n_scenes)])
 
 
 @pytest.fixture(scope="module")
@@ -290,3 +293,38 @@ def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
     for name in ("noise_diffuse", "noise_specular"):
         values = group[name][...].astype(np.float32)
         assert values.shape == (4, 1, 16, 16) and np.isfinite(values).all() and (values >= 0).all()
+
+
+def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(tmp_path):
+    """tile.clean_targets: each row's target is OIDN's per-branch output on the sanitised reference (the
+    refiner's base function at `high`), transformed as the raw reference would be; noisy rows and features
+    are untouched. The store records it, so a store tiled on raw references refuses the clean config."""
+    from admc.model.inference.oidn_base import oidn_bases
+    from admc.pipeline.render.variants import use_variant
+    use_variant("auto")
+    raw = build_dataset(tiny(tmp_path / "raw", 2), progress=False)
+    clean_cfg = load_config(None, [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true",
+                                   "tile.store=clean.zarr", *tiny_overrides(2)])
+    clean = build_dataset(clean_cfg, progress=False)
+    assert clean.executed == 2 and all(s["split"] for s in clean.tiles)  # renders cached: only the tiles ran
+    for summary in clean.tiles:
+        split, scene_id = summary["split"], summary["scene_id"]
+        reference = tile._clean(exr.read_exr(clean.renders_dir / scene_id / "reference.exr"), {}, "reference")
+        bases = oidn_bases(reference, "oidn")
+        for branch in ("diffuse", "specular"):
+            clean_rows = patches.PatchReader(clean.store, split, branch=branch)
+            raw_rows = patches.PatchReader(raw.store, split, branch=branch)
+            rows = [i for i in range(len(clean_rows)) if clean_rows.locate(i)[0] == scene_id]
+            for i in rows:
+                row, raw_row = clean_rows[i], raw_rows[i]
+                np.testing.assert_array_equal(row["noisy"], raw_row["noisy"])
+                np.testing.assert_array_equal(row["features"], raw_row["features"])
+                y, x = _origin(clean.store, f"{split}/{scene_id}", clean_rows.locate(i)[1])
+                layers = exr.read_exr(clean.renders_dir / scene_id / f"spp{row['spp']:04d}.exr")
+                want = (tf.diffuse_forward(bases["diffuse"], layers["albedo"]) if branch == "diffuse"
+                        else tf.specular_forward(bases["specular"]))[y:y + 32, x:x + 32].transpose(2, 0, 1)
+                np.testing.assert_array_equal(row["reference"], want.astype(np.float16).astype(np.float32))
+                assert not np.array_equal(row["reference"], raw_row["reference"])
+    mixed = load_config(None, [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true", *tiny_overrides(2)])
+    with pytest.raises(patches.PatchStoreError, match="clean_targets"):
+        build_dataset(mixed, progress=False)  # the raw store (patches.zarr) is refused, naming the key

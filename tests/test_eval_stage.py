@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from admc.common.metrics import METRICS
-from admc.pipeline.config import load_config
+from admc.pipeline.config import ConfigError, load_config
 from admc.pipeline.evaluation.baselines import optix_unavailable_reason
 from admc.pipeline.evaluation.html import ReportImage, report_group
 from admc.pipeline.stages.evaluate import REPORT_SCENES, EvalStageError, eval_scenes, run_eval
@@ -43,6 +43,23 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
         assert methods == {"noisy", "oidn"} and results["not_run"] == {"optix": why_no_optix}
         assert f"**Not run:** optix: {why_no_optix}" in files["table1_md"].read_text()
         assert "Not run:" in html and html_escape(why_no_optix) in html
+
+
+def test_eval_scores_against_references_at_eval_reference_spp_and_tiling_keeps_its_own(tmp_path, variant):
+    """eval.reference_spp renders the scored scenes' references at that spp (apart from the training
+    references of render.reference_spp, which stay cached for tiling); the sidecars and Table 1's reference
+    cost say which spp was scored against."""
+    from admc.pipeline.stages.render import render_corpus
+    cfg = load_config(None, overrides(tmp_path) + ["eval.reference_spp=64", "eval.optix='off'"])
+    training = render_corpus(cfg, progress=False)
+    outcome = run_eval(cfg, progress=False)
+    assert json.loads(outcome.result.files["results_json"].read_text())["reference_cost"]["spp"] == [64]
+    for scene_id in outcome.scene_ids:
+        scored = json.loads((tmp_path / "renders" / scene_id / "reference.json").read_text())
+        assert scored["spp"] == 64 and scored["reference"]
+    assert [s["spp"] for s in training.sidecars if s["reference"]] == [32, 32]  # tiling's references, still cached
+    with pytest.raises(ConfigError, match="eval.reference_spp"):
+        load_config(None, overrides(tmp_path) + ["eval.reference_spp=3"])  # not above the inputs' 4 spp
 
 
 def test_eval_page_shows_the_written_images_and_no_npy_is_left(tmp_path, variant):

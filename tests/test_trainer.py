@@ -165,6 +165,33 @@ def test_stop_and_resume_equals_one_uninterrupted_run(store, tmp_path, precision
     assert a["precision"] == b["precision"] == precision
 
 
+def test_a_spent_time_budget_ends_the_run_validated_and_a_larger_one_resumes_it(store, tmp_path):
+    out = tmp_path / "budget"
+    tiny_budget = dataclasses.replace(SETTINGS, minutes=1e-6)  # spent before the first step ends
+    first = train(store, out, tiny_budget, TINY, progress=False)
+    saved = load_checkpoint(first.checkpoint)
+    assert first.step == saved["step"] == 1 and saved["seconds"] > 0
+    assert any("train.minutes" in note and "step 1 of 7" in note for note in first.notes), first.notes
+    assert first.validation["diffuse"]["relmse"] > 0 and first.weights.is_file()  # validated and shipped at its end
+    again = train(store, out, tiny_budget, TINY, resume=True, progress=False)
+    assert again.step == 1 and not again.last_losses  # the budget stays spent across the resume: nothing to train
+    rest = train(store, out, dataclasses.replace(SETTINGS, minutes=0.0), TINY, resume=True, progress=False)
+    assert rest.step == 7 and load_checkpoint(rest.checkpoint)["seconds"] > saved["seconds"]
+
+
+def test_validation_shows_each_branch_against_its_start_and_oidn_on_the_same_patches(store, tmp_path, capsys):
+    settings = dataclasses.replace(SETTINGS, steps=3, val_every=3)
+    result = train(store, tmp_path / "shown", settings, TINY, progress=True)
+    lines = [line for line in capsys.readouterr().err.splitlines() if " validation: " in line]
+    assert [line.split(" validation")[0] for line in lines] == [
+        "step 0 diffuse", "step 0 specular", "step 3 diffuse", "step 3 specular"]
+    assert all("x the start" in line and "x OIDN" in line for line in lines), lines
+    for branch, val in result.validation.items():  # the store's OIDN rows of the same patches, as ratios
+        assert val["relmse_vs_oidn"] == pytest.approx(val["relmse"] / val["oidn_relmse"])
+        assert val["oidn_relmse"] < val["noisy_relmse"]
+        assert f"{val['relmse_vs_oidn']:.3f}x OIDN" in lines[2 if branch == "diffuse" else 3]
+
+
 def test_the_moving_average_follows_the_weights_with_a_ramped_decay(store):
     torch.manual_seed(0)
     settings = dataclasses.replace(SETTINGS, ema=0.5, l1_warmup_steps=10, head_tail_start_step=0)

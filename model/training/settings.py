@@ -33,6 +33,8 @@ class TrainSettings:
     """
 
     steps: int = 600_000
+    minutes: float = 0.0                  # > 0: a wall-clock budget; the run ends at the first step past it (and
+                                          # at `steps` at the latest), validated and checkpointed; 0 = no budget
     batch_size: int = 8
     l1_warmup_steps: int = 0
     critic_only_steps: int = 0
@@ -81,7 +83,7 @@ class TrainSettings:
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
         require(isinstance(self.distill_from, str), "distill_from", f"must be a path or \"\", got {self.distill_from!r}")
-        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z", "distill_weight"):
+        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z", "distill_weight", "minutes"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
         require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema",

@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +33,7 @@ from ..precision import precision_name, resolve_device
 from ..transforms import transform_spec
 from .branch import BranchTrainer
 from .data import branch_seed, load_rows, train_loader
-from .distributed import RankFailed, Ranks, broadcast_modules, check_world, current, rank_device
+from .distributed import RankFailed, Ranks, agree, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
 from .progress import ProgressWindow
 from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
@@ -104,6 +106,27 @@ def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, 
     return _finish(run, start)
 
 
+class Clock:
+    """The wall-clock time a run has trained, across resumes (`before`: the checkpoint's), against
+    train.minutes. Counting starts when the clock is made, so loading the store and the start's
+    validation count too: the budget is what the user waits for."""
+
+    def __init__(self, minutes: float) -> None:
+        self.budget = 60.0 * minutes
+        self.before = 0.0
+        self.started = time.perf_counter()
+
+    def seconds(self) -> float:
+        return self.before + time.perf_counter() - self.started
+
+    def spent(self) -> bool:
+        return self.budget > 0 and self.seconds() >= self.budget
+
+    def spent_before(self) -> bool:
+        """The budget was spent by the steps a resumed checkpoint holds (a fresh run takes one step at least)."""
+        return self.budget > 0 and self.before >= self.budget
+
+
 @dataclass
 class _Run:
     """What every part of one training run shares: its inputs, networks, logs and what it has said."""
@@ -120,11 +143,13 @@ class _Run:
     best: BestNetworks = field(init=False)
     validation: dict[str, dict[str, float]] = field(default_factory=dict)
     baselines: dict[str, dict[str, float]] = field(default_factory=dict)  # branch -> the val scores of its input
+    start_scores: dict[str, dict[str, float]] = field(default_factory=dict)  # branch -> its first validation
     last_losses: dict[str, dict[str, float]] = field(default_factory=dict)
     transform: dict | None = None
     patch_size: int = 0
     precision: str = ""
     metrics: MetricsLog | None = None
+    step: int = 0  # the last step run (or restored)
 
     def __post_init__(self) -> None:
         self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
@@ -139,6 +164,7 @@ class _Run:
         self.fingerprint = patches.fingerprint(self.store) if patches.exists(self.store) else None
         self.best = BestNetworks(self.settings.select_z, self.settings.select_metric)
         self.last_selection: dict[str, float] = {}  # branch -> the last validation's mean selection value
+        self.clock = Clock(self.settings.minutes)
 
     def say(self, message: str) -> None:
         """Show a note now under the progress bar, or (without one) keep it for the caller to report."""
@@ -148,6 +174,12 @@ class _Run:
         else:
             self.notes.append(message)
 
+    def show(self, message: str) -> None:
+        """A progress line (validation against the start and OIDN): under the bar, or on stderr without one."""
+        log.info(message)
+        if self.progress:
+            tqdm.write(message, file=sys.stderr)
+
     def state(self, step: int) -> dict:
         """Everything the next step depends on: the checkpoint's content."""
         return {"stage": self.stage, "step": step, "settings": dataclasses.asdict(self.settings),
@@ -155,7 +187,8 @@ class _Run:
                 "store": {"path": str(self.store), "fingerprint": self.fingerprint, "patch_size": self.patch_size},
                 "init_from": str(self.init_from) if self.init_from is not None else None,
                 "branches": {b: t.state_dict() for b, t in self.trainers.items()},
-                "best": self.best.state_dict(), "rng": rng_state()}
+                "best": self.best.state_dict(), "rng": rng_state(), "seconds": self.clock.seconds(),
+                "start_scores": self.start_scores}
 
 
 def check_fresh_start(out_dir: Path) -> None:
@@ -206,7 +239,8 @@ def _open_train(run: _Run, transform: dict, source: str) -> dict[str, PatchReade
 
 
 def _load_val(run: _Run, readers: dict[str, PatchReader], transform: dict, source: str) -> dict[str, dict]:
-    """The fixed val rows of every trained branch that has val patches (none when val_every = 0)."""
+    """The fixed val rows of every trained branch that has val patches (none when val_every = 0), with
+    OIDN's output for the same rows ("oidn") where the store holds it: what validation compares with."""
     store, settings = run.store, run.settings
     val: dict[str, dict] = {}
     if settings.val_every:
@@ -218,7 +252,21 @@ def _load_val(run: _Run, readers: dict[str, PatchReader], transform: dict, sourc
             if len(val_reader) == 0:
                 raise PatchStoreError(f"{store}: the val split has no {branch} patches (needed as val_every > 0)")
             val[branch] = load_rows(val_reader, settings.val_patches)
+            oidn = _oidn_rows(run, branch, transform, settings.val_patches)
+            if oidn is not None:
+                val[branch]["oidn"] = oidn
     return val
+
+
+def _oidn_rows(run: _Run, branch: str, transform: dict, n: int):
+    """OIDN's output (the store's `high` bases) for the val rows, or None where the store has none."""
+    if run.model.base == "oidn":
+        return None  # the refiner's own base is that output: validation reports it as base_*
+    try:
+        reader = PatchReader(run.store, "val", expect_transform=transform, branch=branch, base="oidn")
+    except PatchStoreError:
+        return None
+    return load_rows(reader, n)["base"]
 
 
 def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
@@ -230,7 +278,9 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
             trainer.load_state_dict(checkpoint["branches"][b], str(run.checkpoint_path))
         set_rng_state(checkpoint["rng"])
         run.best.load_state_dict(checkpoint.get("best", {}))
+        run.start_scores.update(checkpoint.get("start_scores", {}))
         start = int(checkpoint["step"])
+        run.clock.before = float(checkpoint.get("seconds", 0.0))
         run.say(f"resuming {run.stage} from {run.checkpoint_path} at step {start}")
         say_precision_change(checkpoint, run.precision, run.say)
         return start
@@ -243,19 +293,45 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
 
 
 def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
-    """Validate every branch, log it and offer its networks to the selection of the shipped weights."""
+    """Validate every branch, log it, show it against the start and OIDN, and offer its networks to the
+    selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
         scores, per_patch = validate(trainer.shipped_generator, rows, b, run.settings.batch_size, run.device,
                                      trainer.dtype)
         if b not in run.baselines:
             run.baselines[b] = baseline_scores(rows, b)
-        run.validation[b] = {**scores, **run.baselines[b]}
+        run.start_scores.setdefault(b, scores)  # step 0's (a checkpoint carries them over a resume)
+        run.validation[b] = {**scores, **run.baselines[b], **_ratios(scores, run.start_scores[b], run.baselines[b])}
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
+        run.show(f"step {step} {b} validation: " + _comparison(run.validation[b]))
         values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
         run.last_selection[b] = float(values.mean())
         guard = step == 0 and run.init_from is not None  # fine-tuning: ship nothing that is not proven better
         run.best.offer(b, step, values, trainer.shipped_generator, trainer.critic, guard=guard)
+
+
+def _ratios(scores: dict[str, float], start: dict[str, float], baselines: dict[str, float]) -> dict[str, float]:
+    """Each error as a multiple of the starting weights' ("_vs_start") and of OIDN's on the same patches
+    ("_vs_oidn": the store's OIDN output, or a refiner's OIDN base)."""
+    out = {}
+    for k in ("relmse", "one_minus_ssim"):
+        out[f"{k}_vs_start"] = scores[k] / max(start[k], 1e-12)
+        oidn = baselines.get(f"oidn_{k}", baselines.get(f"base_{k}"))
+        if oidn is not None:
+            out[f"{k}_vs_oidn"] = scores[k] / max(oidn, 1e-12)
+    return out
+
+
+def _comparison(validation: dict[str, float]) -> str:
+    """relMSE and 1-SSIM with their multiples of the start and of OIDN, in one line."""
+    parts = []
+    for k, label in (("relmse", "relMSE"), ("one_minus_ssim", "1-SSIM")):
+        vs = [f"{validation[f'{k}_vs_start']:.3f}x the start"]
+        if f"{k}_vs_oidn" in validation:
+            vs.append(f"{validation[f'{k}_vs_oidn']:.3f}x OIDN")
+        parts.append(f"{label} {validation[k]:.4g} ({', '.join(vs)})")
+    return "; ".join(parts)
 
 
 def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], start: int, resume: bool) -> None:
@@ -274,7 +350,7 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
     try:
         if start == 0 and settings.val_every:
             _validate_all(run, val, 0)  # the starting weights: what the run must beat to ship anything else
-        for step in range(start, settings.steps):
+        for step in range(start, start if run.clock.spent_before() else settings.steps):
             for b, trainer in run.trainers.items():
                 batches = [next(streams[b]) for _ in range(trainer.batches_per_step(step))]
                 ok, losses = trainer.step(step, batches)
@@ -286,13 +362,20 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
                     _bad_step(run, b, trainer, step, last_saved)
             done = step + 1
             window.step_done(done)
-            if settings.val_every and (done % settings.val_every == 0 or done == settings.steps):
+            out_of_time = run.clock.budget > 0 and not agree(not run.clock.spent(), run.device)  # all ranks at one step
+            last = done == settings.steps or out_of_time
+            if settings.val_every and (done % settings.val_every == 0 or last):
                 _validate_all(run, val, done)
             streak = any(t.bad_consecutive for t in run.trainers.values())
-            if done == settings.steps or (done % settings.checkpoint_every == 0 and not streak):
+            if last or (done % settings.checkpoint_every == 0 and not streak):
                 if run.ranks.lead:
                     save_checkpoint(run.checkpoint_path, run.state(done))
                 last_saved = done
+            run.step = done
+            if out_of_time:
+                run.say(f"train.minutes = {settings.minutes:g}: the budget is spent, stopping at step {done} of "
+                        f"{settings.steps} (raise train.minutes to train on)")
+                break
     except RankFailed as exc:
         kept = f"step {last_saved}" if last_saved is not None else "none written yet"
         raise RankFailed(f"{exc}; last checkpoint: {run.checkpoint_path} ({kept})") from None
@@ -317,7 +400,7 @@ def _bad_step(run: _Run, branch: str, trainer: BranchTrainer, step: int, last_sa
 
 def _finish(run: _Run, start: int) -> TrainResult:
     """Write the shipped weights (each branch's best validated networks) and say which they are."""
-    last_step = max(start, run.settings.steps)
+    last_step = max(start, run.step)
     selected, selection_notes = run.best.summary(last_step, run.last_selection)
     run.notes.extend(selection_notes)  # said once, with the result, where the caller reports the weights file
     for note in selection_notes:

@@ -52,10 +52,11 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
 
 def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
     """The same averages for what the generator starts from, which a run must beat: "noisy_psnr",
-    "noisy_relmse", ... and, for a refiner, "base_*" of OIDN's output. Fixed for a run: computed once."""
+    "noisy_relmse", ..., for a refiner "base_*" of its OIDN base, and "oidn_*" of OIDN's output for the
+    branch where the store holds it (what the user compares with). Fixed for a run: computed once."""
     ref = to_linear(val["reference"], val["features"], branch)
     return {f"{name}_{k}": float(v.mean())
-            for name in ("noisy", "base") if name in val
+            for name in ("noisy", "base", "oidn") if name in val
             for k, v in _per_patch(to_linear(val[name], val["features"], branch), ref).items()}
 
 

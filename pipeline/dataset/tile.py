@@ -123,14 +123,18 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
 
 def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
                scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
-               seed: int, refiner_base: str | None = None, noise_maps: bool = False) -> dict:
+               seed: int, refiner_base: str | None = None, noise_maps: bool = False,
+               clean_targets: bool = False) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}. `refiner_base`: the
-    refining base whose OIDN bases to store (None: none)."""
+    refining base whose OIDN bases to store (None: none); `clean_targets`: the reference denoised by OIDN
+    is what the rows' targets are cut from (tile.clean_targets)."""
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
 
     sanitized: dict = {}
     reference = _clean(read("reference"), sanitized, "reference")
+    if clean_targets:  # OIDN's per-branch output on the reference: at a few hundred spp far cleaner than the raw one
+        reference = {**reference, **oidn_bases(reference, "oidn")}
     spp_inputs = sorted((k for k in inputs if k != "reference"), key=lambda k: int(k[3:]))
     noisy = {k: _clean(read(k), sanitized, k) for k in spp_inputs}
     has_specular = "specular" in reference
@@ -157,6 +161,7 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     stats = {name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
              for name, a in arrays.items() if a.ndim == 4}
     patches.write_scene(store, split, scene_id, arrays, {
+        **({"clean_targets": True} if clean_targets else {}),
         "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
         "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
         "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used

@@ -28,7 +28,8 @@ def store_attributes(cfg: Config) -> dict:
         "render": {"spp": list(cfg.render.spp), "reference_spp": cfg.render.reference_spp,
                    "max_depth": cfg.render.max_depth},
         "tile": {"crops_per_scene": cfg.tile.crops_per_scene, "candidates_per_crop": cfg.tile.candidates_per_crop,
-                 "split": list(cfg.tile.split), "seed": cfg.tile.seed},
+                 "split": list(cfg.tile.split), "seed": cfg.tile.seed,
+                 **({"clean_targets": True} if cfg.tile.clean_targets else {})},
         "feature_channels": list(transforms.FEATURE_CHANNELS),
         "admc_version": admc.__version__,
     }
@@ -82,7 +83,8 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                         "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
                         "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed,
                         "refiner_base": cfg.tile.refiner_base if cfg.tile.oidn_base else None,
-                        **({"noise_maps": True} if noise_maps(cfg) else {})},
+                        **({"noise_maps": True} if noise_maps(cfg) else {}),
+                        **({"clean_targets": True} if cfg.tile.clean_targets else {})},
                     source=render.scene_source(spec))
         if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled, noise_maps(cfg)):
             cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders

@@ -146,6 +146,13 @@ def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
     return [], {"optix": reason}
 
 
+def scoring_config(cfg: Config) -> Config:
+    """The config whose renders eval scores: its references at eval.reference_spp where that is set."""
+    if not cfg.eval.reference_spp:
+        return cfg
+    return replace(cfg, render=replace(cfg.render, reference_spp=cfg.eval.reference_spp))
+
+
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:
     """Render the eval split's scenes if needed (cached), then evaluate noisy, OIDN, OptiX (where it
     runs) and `extra` denoisers (`learned_denoisers` for the trained model)."""
@@ -156,7 +163,7 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
                              f"(tile.split = {list(cfg.tile.split)}){' and eval.test_scenes_per_family is 0' if cfg.eval.split == 'test' else ''}; "
                              f"add scenes or change tile.split")
     scene_ids = [s.scene_id for s in specs]
-    renders_dir = render_corpus(cfg, progress, specs).renders_dir
+    renders_dir = render_corpus(scoring_config(cfg), progress, specs).renders_dir
     images = find_test_images(renders_dir, scene_ids)
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
