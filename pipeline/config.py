@@ -21,7 +21,7 @@ from admc.common.oidn import QUALITIES as OIDN_QUALITIES
 from admc.errors import AdmcError
 from admc.model.nets.configs import DOWNSAMPLING
 from admc.model.nets.settings import ModelSettings
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 
 
 class ConfigError(AdmcError, ValueError):

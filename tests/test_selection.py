@@ -17,7 +17,7 @@ from admc.model.nets.backbones import build_generator
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.data import load_rows
 from admc.model.training.selection import BestNetworks, improvement_z, selection_values
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import train
 from admc.model.training.validation import baseline_scores, validate
 from admc.stores.checkpoints import load_checkpoint, load_weights

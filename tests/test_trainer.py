@@ -16,7 +16,7 @@ from admc.model.nets.configs import MODES
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
                                      read_networks, save_checkpoint)

@@ -13,7 +13,7 @@ from admc.model.nets.generator import Generator, GeneratorConfig, scaled_kaiming
 from admc.model.nets.settings import ModelSettings
 from admc.model.nets.unet import UNetGenerator
 from admc.model.training.branch import BranchTrainer
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.transforms import EPS, diffuse_forward, transform_spec
 from admc.stores.checkpoints import export_weights
 from test_inference import log_tolerance

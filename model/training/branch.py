@@ -33,7 +33,7 @@ from ..nets.settings import ModelSettings
 from ..precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
-from .settings import TrainSettings
+from ..train_settings import TrainSettings
 from .teacher import load_teacher
 from .validation import linear_scale
 
