@@ -13,6 +13,14 @@ class AdmcError(Exception):
     """A user-fixable failure; str(error) is the whole message a user sees."""
 
 
+class ConfigError(AdmcError, ValueError):
+    """A config file, section, key or value admc refuses; the message names it."""
+
+
+class StageError(AdmcError, RuntimeError):
+    """A stage cannot run as asked (e.g. tiling renders that do not exist yet, no weights to evaluate)."""
+
+
 class TrainingError(AdmcError, ValueError):
     """Training cannot start or resume as asked (settings, checkpoint or data do not fit)."""
 

@@ -18,14 +18,11 @@ from pathlib import Path
 
 from admc.common.layout import BASE_QUALITIES, ENGINE_CHOICES, ENSEMBLES
 from admc.common.oidn import QUALITIES as OIDN_QUALITIES
-from admc.errors import AdmcError
+from admc.errors import ConfigError
 from admc.model.nets.configs import DOWNSAMPLING
 from admc.model.nets.settings import ModelSettings
+from admc.pipeline.scene_names import CONSTRUCT_NAMES, FAMILY_NAMES, OOD_CONSTRUCT_NAMES
 from admc.model.train_settings import TrainSettings
-
-
-class ConfigError(AdmcError, ValueError):
-    pass
 
 
 MAX_RESOLUTION = 16384
@@ -51,20 +48,18 @@ class CorpusConfig:
     xml_resolution: str
 
     def check(self) -> None:
-        from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, OOD_CONSTRUCTS
-
         _require(self.n_scenes >= 0, "corpus.n_scenes", f"must be >= 0, got {self.n_scenes}")
-        for key, names, known in (("corpus.families", self.families, FAMILIES),
-                                  ("corpus.held_out_families", self.held_out_families, FAMILIES)):
+        for key, names, known in (("corpus.families", self.families, FAMILY_NAMES),
+                                  ("corpus.held_out_families", self.held_out_families, FAMILY_NAMES)):
             unknown = [name for name in names if name not in known]
             _require(not unknown, key, f"unknown families {unknown}; known: {', '.join(sorted(known))}")
         held = [name for name in self.families if name in self.held_out_families]
         _require(not held, "corpus.families", f"{held} held out of training (corpus.held_out_families); "
                                               "they are the out-of-family set's, never tiled into training")
-        ood = [name for name in self.constructs if name in OOD_CONSTRUCTS]
+        ood = [name for name in self.constructs if name in OOD_CONSTRUCT_NAMES]
         _require(not ood, "corpus.constructs", f"{ood} are held out for the out-of-family set (family 'ood')")
-        unknown = [name for name in self.constructs if name not in CONSTRUCTS]
-        _require(not unknown, "corpus.constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCTS)}")
+        unknown = [name for name in self.constructs if name not in CONSTRUCT_NAMES]
+        _require(not unknown, "corpus.constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCT_NAMES)}")
         _require(0.0 <= self.construct_chance <= 1.0, "corpus.construct_chance",
                  f"must be in [0, 1], got {self.construct_chance}")
         _require(self.xml_resolution in ("render", "film"), "corpus.xml_resolution",
@@ -158,10 +153,9 @@ class EvalConfig:
                  f"must be >= 0, got {self.ood_scenes_per_family}")
         _require(self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families), "eval.ood_families",
                  "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0")
-        from admc.pipeline.render.scenes import FAMILIES
-
-        unknown = [name for name in self.ood_families if name not in FAMILIES]
-        _require(not unknown, "eval.ood_families", f"unknown families {unknown}; known: {', '.join(sorted(FAMILIES))}")
+        unknown = [name for name in self.ood_families if name not in FAMILY_NAMES]
+        _require(not unknown, "eval.ood_families",
+                 f"unknown families {unknown}; known: {', '.join(sorted(FAMILY_NAMES))}")
         _require(self.oidn_quality in OIDN_QUALITIES, "eval.oidn_quality",
                  f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}")
         _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")

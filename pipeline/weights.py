@@ -11,11 +11,11 @@ from pathlib import Path
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BASE_QUALITIES
+from admc.errors import StageError
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
 from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
 from admc.pipeline.config import Config
-from admc.pipeline.stages.corpus import StageError
 from admc.stores.checkpoints import WEIGHTS_NAME
 
 WEIGHTS_DIR = Path(resources.files("admc.weights"))
