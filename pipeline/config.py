@@ -19,8 +19,7 @@ from pathlib import Path
 from admc.common.layout import BASE_QUALITIES, ENGINE_CHOICES, ENSEMBLES
 from admc.common.oidn import QUALITIES as OIDN_QUALITIES
 from admc.errors import ConfigError
-from admc.model.nets.configs import DOWNSAMPLING
-from admc.model.nets.settings import ModelSettings
+from admc.model.nets.settings import DOWNSAMPLING, ModelSettings
 from admc.pipeline.scene_names import CONSTRUCT_NAMES, FAMILY_NAMES, OOD_CONSTRUCT_NAMES
 from admc.model.train_settings import TrainSettings
 

@@ -173,7 +173,7 @@ def test_the_baseline_is_the_input_scored_as_an_output_would_be(store, branch):
     # baseline_scores runs once per run; it must score exactly what validate would give a network that
     # returns its input: a skip generator whose correction is zero
     rows = load_rows(PatchReader(store, "val", branch=branch), 8)
-    generator = build_generator(TINY.generator_config())
+    generator = build_generator(TINY)
     with torch.no_grad():
         for p in generator.tail[-2].parameters():
             p.zero_()

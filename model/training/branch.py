@@ -68,8 +68,8 @@ class BranchTrainer:
         ranks = current()
         self.shard = (ranks.rank, ranks.world)  # this process's slice of each global batch
         self.dtype = resolve_precision(settings.precision, device)
-        self.generator = build_generator(model.generator_config()).to(device, memory_format=MEMORY_FORMAT)
-        self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=MEMORY_FORMAT)
+        self.generator = build_generator(model).to(device, memory_format=MEMORY_FORMAT)
+        self.critic = Critic(model, patch_size).to(device, memory_format=MEMORY_FORMAT)
         self.patch_size = patch_size
         lr = settings.lr_g(branch)
         groups = self.generator.parameter_groups()

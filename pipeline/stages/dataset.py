@@ -8,7 +8,7 @@ from admc.common import buffers, oidn
 from admc.errors import ConfigError, StageError
 from admc.model import transforms
 from admc.model.inference import oidn_base
-from admc.model.nets.configs import DOWNSAMPLING
+from admc.model.nets.settings import DOWNSAMPLING
 from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.engine import runner
