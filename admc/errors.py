@@ -13,6 +13,27 @@ class AdmcError(Exception):
     """A user-fixable failure; str(error) is the whole message a user sees."""
 
 
+class ConfigError(AdmcError, ValueError):
+    """A config file, section, key or value admc refuses; the message names it."""
+
+
+class SettingError(ConfigError):
+    """One setting's value is refused (checks.require). A settings dataclass names its own field
+    ("channels: must be ..."); the config loader, which knows the section, names the key in full
+    ("config key 'model.channels': must be ...") with `in_section`."""
+
+    def __init__(self, key: str, problem: str, section: str | None = None) -> None:
+        self.key, self.problem, self.section = key, problem, section
+        super().__init__(f"config key '{section}.{key}': {problem}" if section else f"{key}: {problem}")
+
+    def in_section(self, section: str) -> "SettingError":
+        return SettingError(self.key, self.problem, section)
+
+
+class StageError(AdmcError, RuntimeError):
+    """A stage cannot run as asked (e.g. tiling renders that do not exist yet, no weights to evaluate)."""
+
+
 class TrainingError(AdmcError, ValueError):
     """Training cannot start or resume as asked (settings, checkpoint or data do not fit)."""
 

@@ -50,11 +50,11 @@ from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDen
 DEFAULTS = load_config()  # configs/default.toml
 SMALL = DEFAULTS.model
 CONFIGS = {
-    "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model.generator_config(),
-    "small": SMALL.generator_config(),
-    "small+oidn": replace(SMALL, base=DEFAULTS.tile.refiner_base).generator_config(),
-    "small-slim": replace(SMALL, cfm_per_block=1, condition_layers=1).generator_config(),
-    "small-unet": replace(SMALL, backbone="unet").generator_config(),
+    "paper": load_config(resources.files("admc.configs").joinpath("paper.toml")).model,
+    "small": SMALL,
+    "small+oidn": replace(SMALL, base=DEFAULTS.tile.refiner_base),
+    "small-slim": replace(SMALL, cfm_per_block=1, condition_layers=1),
+    "small-unet": replace(SMALL, backbone="unet"),
 }
 
 

@@ -12,20 +12,18 @@ import time
 
 import torch
 
-from admc.model.nets.critic import Critic, CriticConfig
-from admc.model.nets.generator import Generator, GeneratorConfig
+from admc.model.nets.critic import Critic
+from admc.model.nets.generator import Generator
 from admc.model.nets.losses import critic_loss, generator_loss
+from admc.model.nets.settings import ModelSettings
 
-GENERATORS = {
-    "paper": GeneratorConfig(),
-    "small": GeneratorConfig(channels=32, blocks=4, cond_channels=16, encoder_channels=32),
-    "tiny": GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16),
+MODELS = {
+    "paper": ModelSettings(),
+    "small": ModelSettings(channels=32, blocks=4, cond_channels=16, encoder_channels=32, critic_channels=16),
+    "tiny": ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=8),
 }
-CRITICS = {
-    "paper": CriticConfig(),
-    "small": CriticConfig(base_channels=16, patch_size=64),
-    "tiny": CriticConfig(base_channels=8, patch_size=32),
-}
+PATCH_SIZES = {"paper": 128, "small": 64, "tiny": 32}
+"""What each critic scores (the patch size fixes its linear layer)."""
 
 
 def count(module: torch.nn.Module) -> int:
@@ -48,19 +46,20 @@ def median_seconds(fn, device: torch.device, repeats: int) -> float:
 
 def print_parameter_counts() -> None:
     print("parameters (generator per branch / critic):")
-    for name in GENERATORS:
-        g = Generator(GENERATORS[name])
-        print(f"  {name:6s} generator {count(g):>11,d}  (encoder {count(g.encoder):,d})   "
-              f"critic {count(Critic(CRITICS[name])):>11,d}  ({CRITICS[name]})")
+    for name, model in MODELS.items():
+        g = Generator(model)
+        critic = Critic(model, PATCH_SIZES[name])
+        print(f"  {name:6s} generator {count(g):>11,d}  (encoder {count(g.encoder):,d})   critic {count(critic):>11,d}  "
+              f"(critic_channels={model.critic_channels}, critic_norm={model.critic_norm!r}, patch {PATCH_SIZES[name]})")
     for mode in ("none", "concat", "shift", "scale"):
-        print(f"  paper generator, mode {mode:6s}: {count(Generator(GeneratorConfig(mode=mode))):>11,d}")
+        print(f"  paper generator, mode {mode:6s}: {count(Generator(ModelSettings(mode=mode))):>11,d}")
 
 
 def bench_forward(device: torch.device, repeats: int, size: int = 256) -> None:
     noisy = torch.rand(1, 3, size, size, device=device)
     features = torch.rand(1, 7, size, size, device=device)
     for name in ("small", "paper"):
-        g = Generator(GENERATORS[name]).to(device).eval()
+        g = Generator(MODELS[name]).to(device).eval()
         for layout in ("contiguous", "channels_last"):
             fmt = torch.channels_last if layout == "channels_last" else torch.contiguous_format
             g = g.to(memory_format=fmt)
@@ -71,9 +70,9 @@ def bench_forward(device: torch.device, repeats: int, size: int = 256) -> None:
 
 
 def bench_training(device: torch.device, repeats: int, name: str = "small", batch: int = 4) -> None:
-    size = CRITICS[name].patch_size
-    g = Generator(GENERATORS[name]).to(device)
-    d = Critic(CRITICS[name]).to(device)
+    size = PATCH_SIZES[name]
+    g = Generator(MODELS[name]).to(device)
+    d = Critic(MODELS[name], size).to(device)
     opt_g = torch.optim.Adam(g.parameters(), 1e-4)
     opt_d = torch.optim.Adam(d.parameters(), 1e-4)
     noisy = torch.rand(batch, 3, size, size, device=device)

@@ -1,11 +1,15 @@
-"""Field checks of the settings dataclasses: each raises ValueError("<field>: <problem>"), which the
-config loader reports with the field's section."""
+"""The one field check of the settings dataclasses (the config's sections, model/ settings): each raises
+SettingError naming the field, which the config loader reports as `section.field`."""
 from __future__ import annotations
 
+from admc.errors import SettingError
 
-def require(ok: bool, field: str, problem: str) -> None:
+
+def require(ok: bool, key: str, problem: str, section: str | None = None) -> None:
+    """Refuse `key` with `problem` unless `ok`: SettingError("key: problem"), or with `section` (a check that
+    spans sections) "config key 'section.key': problem"."""
     if not ok:
-        raise ValueError(f"{field}: {problem}")
+        raise SettingError(key, problem, section)
 
 
 def positive_ints(obj: object, names: tuple[str, ...]) -> None:

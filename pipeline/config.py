@@ -18,25 +18,17 @@ from pathlib import Path
 
 from admc.common.layout import BASE_QUALITIES, ENGINE_CHOICES, ENSEMBLES
 from admc.common.oidn import QUALITIES as OIDN_QUALITIES
-from admc.errors import AdmcError
-from admc.model.nets.configs import DOWNSAMPLING
-from admc.model.nets.settings import ModelSettings
-from admc.model.training.settings import TrainSettings
-
-
-class ConfigError(AdmcError, ValueError):
-    pass
+from admc.errors import ConfigError, SettingError
+from admc.model.checks import require
+from admc.model.nets.settings import DOWNSAMPLING, ModelSettings
+from admc.pipeline.scene_names import CONSTRUCT_NAMES, FAMILY_NAMES, OOD_CONSTRUCT_NAMES
+from admc.model.train_settings import TrainSettings
 
 
 MAX_RESOLUTION = 16384
 """Largest render side: a 16K film already takes GBs per buffer; far larger ones fail deep in Dr.Jit."""
 SPLIT_TOLERANCE = 1e-6
 """How far tile.split's fractions may sum from 1 (decimal fractions such as 0.8 + 0.1 + 0.1 are inexact)."""
-
-
-def _require(ok: bool, key: str, message: str) -> None:
-    if not ok:
-        raise ConfigError(f"config key '{key}': {message}")
 
 
 @dataclass(frozen=True)
@@ -51,25 +43,23 @@ class CorpusConfig:
     xml_resolution: str
 
     def check(self) -> None:
-        from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, OOD_CONSTRUCTS
-
-        _require(self.n_scenes >= 0, "corpus.n_scenes", f"must be >= 0, got {self.n_scenes}")
-        for key, names, known in (("corpus.families", self.families, FAMILIES),
-                                  ("corpus.held_out_families", self.held_out_families, FAMILIES)):
+        require(self.n_scenes >= 0, "n_scenes", f"must be >= 0, got {self.n_scenes}")
+        for key, names, known in (("families", self.families, FAMILY_NAMES),
+                                  ("held_out_families", self.held_out_families, FAMILY_NAMES)):
             unknown = [name for name in names if name not in known]
-            _require(not unknown, key, f"unknown families {unknown}; known: {', '.join(sorted(known))}")
+            require(not unknown, key, f"unknown families {unknown}; known: {', '.join(sorted(known))}")
         held = [name for name in self.families if name in self.held_out_families]
-        _require(not held, "corpus.families", f"{held} held out of training (corpus.held_out_families); "
+        require(not held, "families", f"{held} held out of training (corpus.held_out_families); "
                                               "they are the out-of-family set's, never tiled into training")
-        ood = [name for name in self.constructs if name in OOD_CONSTRUCTS]
-        _require(not ood, "corpus.constructs", f"{ood} are held out for the out-of-family set (family 'ood')")
-        unknown = [name for name in self.constructs if name not in CONSTRUCTS]
-        _require(not unknown, "corpus.constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCTS)}")
-        _require(0.0 <= self.construct_chance <= 1.0, "corpus.construct_chance",
-                 f"must be in [0, 1], got {self.construct_chance}")
-        _require(self.xml_resolution in ("render", "film"), "corpus.xml_resolution",
-                 f"must be render or film, got {self.xml_resolution!r}")
-        _require(self.n_scenes == 0 or len(self.families) > 0, "corpus.families", "empty but n_scenes > 0")
+        ood = [name for name in self.constructs if name in OOD_CONSTRUCT_NAMES]
+        require(not ood, "constructs", f"{ood} are held out for the out-of-family set (family 'ood')")
+        unknown = [name for name in self.constructs if name not in CONSTRUCT_NAMES]
+        require(not unknown, "constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCT_NAMES)}")
+        require(0.0 <= self.construct_chance <= 1.0, "construct_chance",
+                f"must be in [0, 1], got {self.construct_chance}")
+        require(self.xml_resolution in ("render", "film"), "xml_resolution",
+                f"must be render or film, got {self.xml_resolution!r}")
+        require(self.n_scenes == 0 or len(self.families) > 0, "families", "empty but n_scenes > 0")
 
 
 @dataclass(frozen=True)
@@ -84,15 +74,15 @@ class RenderConfig:
 
     def check(self) -> None:
         w, h = self.resolution
-        _require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "render.resolution",
-                 f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.resolution)}")
-        _require(len(self.spp) > 0, "render.spp", "needs at least one sample count")
-        _require(all(s >= 1 for s in self.spp), "render.spp", f"every spp must be >= 1, got {list(self.spp)}")
-        _require(len(set(self.spp)) == len(self.spp), "render.spp", f"duplicates in {list(self.spp)}")
-        _require(self.reference_spp > max(self.spp), "render.reference_spp",
-                 f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
-        _require(1 <= self.max_depth <= 64, "render.max_depth", f"must be in 1..64, got {self.max_depth}")
-        _require(self.max_spp_per_pass >= 1, "render.max_spp_per_pass", "must be >= 1")
+        require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "resolution",
+                f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.resolution)}")
+        require(len(self.spp) > 0, "spp", "needs at least one sample count")
+        require(all(s >= 1 for s in self.spp), "spp", f"every spp must be >= 1, got {list(self.spp)}")
+        require(len(set(self.spp)) == len(self.spp), "spp", f"duplicates in {list(self.spp)}")
+        require(self.reference_spp > max(self.spp), "reference_spp",
+                f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
+        require(1 <= self.max_depth <= 64, "max_depth", f"must be in 1..64, got {self.max_depth}")
+        require(self.max_spp_per_pass >= 1, "max_spp_per_pass", "must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -111,17 +101,17 @@ class TileConfig:
 
     def check(self) -> None:
         # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built
-        _require(self.patch_size >= DOWNSAMPLING and self.patch_size % DOWNSAMPLING == 0, "tile.patch_size",
-                 f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}")
-        _require(self.crops_per_scene >= 1, "tile.crops_per_scene", "must be >= 1")
-        _require(self.candidates_per_crop >= 1, "tile.candidates_per_crop", "must be >= 1")
-        _require(all(f >= 0 for f in self.split) and abs(sum(self.split) - 1) <= SPLIT_TOLERANCE, "tile.split",
-                 f"the train, val and test fractions must be >= 0 and sum to 1, got {list(self.split)} "
-                 f"(sum {sum(self.split):g})")
-        _require(bool(self.store), "tile.store", "must not be empty")
-        _require(self.val_set in ("split", "ood"), "tile.val_set", f"must be split or ood, got {self.val_set!r}")
-        _require(self.refiner_base in BASE_QUALITIES, "tile.refiner_base",
-                 f"must be one of {', '.join(BASE_QUALITIES)}, got {self.refiner_base!r}")
+        require(self.patch_size >= DOWNSAMPLING and self.patch_size % DOWNSAMPLING == 0, "patch_size",
+                f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}")
+        require(self.crops_per_scene >= 1, "crops_per_scene", "must be >= 1")
+        require(self.candidates_per_crop >= 1, "candidates_per_crop", "must be >= 1")
+        require(all(f >= 0 for f in self.split) and abs(sum(self.split) - 1) <= SPLIT_TOLERANCE, "split",
+                f"the train, val and test fractions must be >= 0 and sum to 1, got {list(self.split)} "
+                f"(sum {sum(self.split):g})")
+        require(bool(self.store), "store", "must not be empty")
+        require(self.val_set in ("split", "ood"), "val_set", f"must be split or ood, got {self.val_set!r}")
+        require(self.refiner_base in BASE_QUALITIES, "refiner_base",
+                f"must be one of {', '.join(BASE_QUALITIES)}, got {self.refiner_base!r}")
 
 
 @dataclass(frozen=True)
@@ -147,31 +137,30 @@ class EvalConfig:
     reference_spp: int
 
     def check(self) -> None:
-        _require(self.test_scenes_per_family >= 0, "eval.test_scenes_per_family",
-                 f"must be >= 0, got {self.test_scenes_per_family}")
-        _require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "eval.test_families",
-                 "empty but eval.test_scenes_per_family > 0")
+        require(self.test_scenes_per_family >= 0, "test_scenes_per_family",
+                f"must be >= 0, got {self.test_scenes_per_family}")
+        require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "test_families",
+                "empty but eval.test_scenes_per_family > 0")
         w, h = self.test_resolution
-        _require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "eval.test_resolution",
-                 f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.test_resolution)}")
-        _require(self.split in ("train", "val", "test", "ood"), "eval.split",
-                 f"must be train, val, test or ood, got {self.split!r}")
-        _require(self.ood_scenes_per_family >= 0, "eval.ood_scenes_per_family",
-                 f"must be >= 0, got {self.ood_scenes_per_family}")
-        _require(self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families), "eval.ood_families",
-                 "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0")
-        from admc.pipeline.render.scenes import FAMILIES
-
-        unknown = [name for name in self.ood_families if name not in FAMILIES]
-        _require(not unknown, "eval.ood_families", f"unknown families {unknown}; known: {', '.join(sorted(FAMILIES))}")
-        _require(self.oidn_quality in OIDN_QUALITIES, "eval.oidn_quality",
-                 f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}")
-        _require(self.optix in ("auto", "on", "off"), "eval.optix", f"must be auto, on or off, got {self.optix!r}")
-        _require(self.repeats >= 1, "eval.repeats", "must be >= 1")
-        _require(self.warmup >= 0, "eval.warmup", "must be >= 0")
-        _require(self.ensemble in ENSEMBLES, "eval.ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
-        _require(self.engine in ENGINE_CHOICES, "eval.engine",
-                 f"must be one of {', '.join(ENGINE_CHOICES)}, got {self.engine!r}")
+        require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "test_resolution",
+                f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.test_resolution)}")
+        require(self.split in ("train", "val", "test", "ood"), "split",
+                f"must be train, val, test or ood, got {self.split!r}")
+        require(self.ood_scenes_per_family >= 0, "ood_scenes_per_family",
+                f"must be >= 0, got {self.ood_scenes_per_family}")
+        require(self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families), "ood_families",
+                "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0")
+        unknown = [name for name in self.ood_families if name not in FAMILY_NAMES]
+        require(not unknown, "ood_families",
+                f"unknown families {unknown}; known: {', '.join(sorted(FAMILY_NAMES))}")
+        require(self.oidn_quality in OIDN_QUALITIES, "oidn_quality",
+                f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}")
+        require(self.optix in ("auto", "on", "off"), "optix", f"must be auto, on or off, got {self.optix!r}")
+        require(self.repeats >= 1, "repeats", "must be >= 1")
+        require(self.warmup >= 0, "warmup", "must be >= 0")
+        require(self.ensemble in ENSEMBLES, "ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
+        require(self.engine in ENGINE_CHOICES, "engine",
+                f"must be one of {', '.join(ENGINE_CHOICES)}, got {self.engine!r}")
 
 
 @dataclass(frozen=True)
@@ -181,11 +170,11 @@ class RunConfig:
     workers: int
 
     def check(self) -> None:
-        _require(self.workers >= 0, "run.workers", f"must be >= 0 (0 = auto), got {self.workers}")
-        _require(bool(self.scheduler), "run.scheduler", "must not be empty")
-        _require(bool(self.workdir), "run.workdir", "must not be empty")
-        _require(not Path(self.workdir).exists() or Path(self.workdir).is_dir(), "run.workdir",
-                 f"{self.workdir} is a file; it must name a folder (made if missing)")
+        require(self.workers >= 0, "workers", f"must be >= 0 (0 = auto), got {self.workers}")
+        require(bool(self.scheduler), "scheduler", "must not be empty")
+        require(bool(self.workdir), "workdir", "must not be empty")
+        require(not Path(self.workdir).exists() or Path(self.workdir).is_dir(), "workdir",
+                f"{self.workdir} is a file; it must name a folder (made if missing)")
 
 
 WALLTIME = re.compile(r"^(\d+-)?\d+:\d{2}:\d{2}$")
@@ -208,18 +197,18 @@ class ClusterConfig:
     def check(self) -> None:
         from dask.utils import parse_bytes
 
-        _require(self.jobs >= 1, "cluster.jobs", f"must be >= 1, got {self.jobs}")
-        _require(self.cores >= 1, "cluster.cores", f"must be >= 1, got {self.cores}")
-        _require(self.gpus >= 0, "cluster.gpus", f"must be >= 0, got {self.gpus}")
+        require(self.jobs >= 1, "jobs", f"must be >= 1, got {self.jobs}")
+        require(self.cores >= 1, "cores", f"must be >= 1, got {self.cores}")
+        require(self.gpus >= 0, "gpus", f"must be >= 0, got {self.gpus}")
         try:
             parse_bytes(self.memory)
         except (ValueError, TypeError):
-            _require(False, "cluster.memory", f"must be a size such as '32GB' or '64GiB', got {self.memory!r}")
-        _require(bool(WALLTIME.match(self.walltime)), "cluster.walltime",
-                 f"must be HH:MM:SS or D-HH:MM:SS, got {self.walltime!r}")
+            require(False, "memory", f"must be a size such as '32GB' or '64GiB', got {self.memory!r}")
+        require(bool(WALLTIME.match(self.walltime)), "walltime",
+                f"must be HH:MM:SS or D-HH:MM:SS, got {self.walltime!r}")
         for i, line in enumerate(self.job_directives):
-            _require(line.startswith("-") and "\n" not in line, f"cluster.job_directives[{i}]",
-                     f"must be one sbatch option such as '--constraint=a100', got {line!r}")
+            require(line.startswith("-") and "\n" not in line, f"job_directives[{i}]",
+                    f"must be one sbatch option such as '--constraint=a100', got {line!r}")
 
 
 @dataclass(frozen=True)
@@ -247,17 +236,18 @@ def _coerce(value, annotation, key: str):
     origin = typing.get_origin(annotation)
     if origin is tuple:
         args = typing.get_args(annotation)
-        _require(isinstance(value, (list, tuple)), key, f"expected a list, got {value!r}")
+        require(isinstance(value, (list, tuple)), key, f"expected a list, got {value!r}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
-        _require(len(value) == len(args), key, f"expected {len(args)} values, got {len(value)}")
+        require(len(value) == len(args), key, f"expected {len(args)} values, got {len(value)}")
         return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
     if annotation is float:
-        _require(isinstance(value, (int, float)) and not isinstance(value, bool), key, f"expected a number, got {value!r}")
-        _require(math.isfinite(value), key, f"must be a finite number, got {value!r}")
+        require(isinstance(value, (int, float)) and not isinstance(value, bool), key,
+                f"expected a number, got {value!r}")
+        require(math.isfinite(value), key, f"must be a finite number, got {value!r}")
         return float(value)
-    _require(isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
-             key, f"expected {annotation.__name__}, got {value!r}")
+    require(isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
+            key, f"expected {annotation.__name__}, got {value!r}")
     return value
 
 
@@ -342,25 +332,24 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
     for field in dataclasses.fields(Config):
         cls = typing.get_type_hints(Config)[field.name]
         hints = typing.get_type_hints(cls)
-        section = cls(**{name: _coerce(values[field.name][name], hints[name], f"{field.name}.{name}")
-                         for name in hints})
         try:
+            section = cls(**{name: _coerce(values[field.name][name], hints[name], name) for name in hints})
             section.check()
-        except ConfigError:
-            raise
-        except ValueError as exc:  # model/ settings say "<field>: <problem>"
-            raise ConfigError(f"config key '{field.name}.{exc}".replace(":", "':", 1)) from None
+        except SettingError as exc:  # a section names its own field: the key is section.field
+            raise exc.in_section(field.name) from None
         sections[field.name] = section
     config = Config(**sections)
     _check_test_set_apart(config)
     scored = config.eval.reference_spp
-    _require(scored == 0 or scored > max(config.render.spp), "eval.reference_spp",
-             f"must be 0 (render.reference_spp) or exceed every input spp (max {max(config.render.spp)}), got {scored}")
-    _require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
-             "tile.val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty")
+    require(scored == 0 or scored > max(config.render.spp), "reference_spp",
+            f"must be 0 (render.reference_spp) or exceed every input spp (max {max(config.render.spp)}), got {scored}",
+            "eval")
+    require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
+            "val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty", "tile")
     base = config.model.base
-    _require(base == "noisy" or config.tile.oidn_base, "tile.oidn_base",
-             f"is false, but model.base = {base!r} trains on OIDN's outputs, which tiling stores only when it is true")
+    require(base == "noisy" or config.tile.oidn_base, "oidn_base",
+            f"is false, but model.base = {base!r} trains on OIDN's outputs, which tiling stores only when it is true",
+            "tile")
     stored = config.tile.refiner_base
     if base not in ("noisy", stored):  # the message names each base's qualities, which "noisy" has not
         raise ConfigError(f"config key 'tile.refiner_base': is {stored!r}, but model.base = {base!r} trains on the "
@@ -383,6 +372,6 @@ def _check_test_set_apart(config: Config) -> None:
     for name in ("test", "ood"):
         families, count, seed = (getattr(config.eval, f"{name}_{key}") for key in ("families", "scenes_per_family", "seed"))
         shared = set(config.corpus.families) & set(families)
-        _require(not (count and config.corpus.n_scenes and shared and seed == config.corpus.seed), f"eval.{name}_seed",
-                 f"equals corpus.seed ({config.corpus.seed}): the {name} scenes of {sorted(shared)} would be "
-                 f"training scenes; choose a seed no training corpus uses")
+        require(not (count and config.corpus.n_scenes and shared and seed == config.corpus.seed), f"{name}_seed",
+                f"equals corpus.seed ({config.corpus.seed}): the {name} scenes of {sorted(shared)} would be "
+                "training scenes; choose a seed no training corpus uses", "eval")

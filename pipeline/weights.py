@@ -11,12 +11,12 @@ from pathlib import Path
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BASE_QUALITIES
+from admc.errors import StageError
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
 from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
-from admc.model.training.trainer import WEIGHTS_NAME
 from admc.pipeline.config import Config
-from admc.pipeline.stages.corpus import StageError
+from admc.stores.checkpoints import WEIGHTS_NAME
 
 WEIGHTS_DIR = Path(resources.files("admc.weights"))
 """The shipped weights, package data of admc.weights: found from an editable or a plain install."""

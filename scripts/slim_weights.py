@@ -69,9 +69,9 @@ def slim_weights(args: argparse.Namespace) -> None:
                          "which is not slimmer")
     branches = {}
     for branch, nets in saved["branches"].items():
-        full = build_generator(model.generator_config()).eval()
+        full = build_generator(model).eval()
         full.load_state_dict({k: v.float() for k, v in nets["generator"].items()})
-        slim = build_generator(slim_model.generator_config()).eval()
+        slim = build_generator(slim_model).eval()
         batch = read_batch(args.store, branch, model, metadata["transform"], args.patches, args.seed)
         slim_generator(full, slim, batch, args.seed)
         with torch.no_grad():

@@ -19,6 +19,11 @@ import torch
 from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
+CHECKPOINT_NAME = "checkpoint.pt"
+"""A training run's whole state, in its run folder (workdir/train/<stage>/): what a resume reads."""
+WEIGHTS_NAME = "weights-fp16.pt"
+"""A training run's shippable fp16 weights, beside its checkpoint: what denoise, eval and fine-tuning read."""
+
 CHECKPOINT_FORMAT = "admc-checkpoint"
 WEIGHTS_FORMAT = "admc-weights"
 FORMAT_VERSION = 1

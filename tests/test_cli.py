@@ -32,13 +32,14 @@ HEAVY = ("torch", "mitsuba", "openvino")
 """Modules that take seconds to import: the CLI must not load them before it needs them."""
 
 
-def invoke_in_fresh_python(*calls: list[str], cwd=None) -> list[tuple[int, list[str], str]]:
-    """Run each call's CLI arguments in turn in one new interpreter; per call its exit code, the HEAVY modules
-    loaded so far and its output."""
+def invoke_in_fresh_python(*calls: list[str], cwd=None, watch: tuple[str, ...] = HEAVY) -> list[tuple[int, list[str], str]]:
+    """Run each call's CLI arguments in turn in one new interpreter; per call its exit code, the `watch`ed
+    packages loaded so far (a package counts as loaded when it or any of its modules is) and its output."""
     code = ("import json, sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
             "for args in json.loads(sys.argv[1]):\n"
             "    result = CliRunner().invoke(app, args)\n"
-            f"    print(json.dumps([result.exit_code, [m for m in {HEAVY!r} if m in sys.modules], result.output]))")
+            f"    loaded = [w for w in {watch!r} if any(m == w or m.startswith(w + '.') for m in sys.modules)]\n"
+            "    print(json.dumps([result.exit_code, loaded, result.output]))")
     out = subprocess.run([sys.executable, "-c", code, json.dumps(calls)], capture_output=True, text=True,
                          timeout=120, cwd=cwd)
     assert out.returncode == 0, out.stderr
@@ -60,6 +61,19 @@ def test_denoise_names_a_bad_input_without_loading_torch(tmp_path):
     results = invoke_in_fresh_python(["denoise", str(tmp_path / "missing.exr")],
                                      ["denoise", str(tmp_path / "broken.exr")])
     assert [(code, loaded) for code, loaded, _ in results] == [(2, []), (2, [])]
+
+
+TRAINING_STACK = ("admc.model.training", "tensorboard", "zarr")
+"""What only training needs: denoising a file loads none of it (the checkpoint and weights file names live
+with their format in stores/checkpoints.py, the [train] settings in model/train_settings.py)."""
+
+
+def test_denoise_loads_no_training_module(tmp_path):
+    (code, loaded, output), = invoke_in_fresh_python(["denoise", str(_oidn_style_input(tmp_path))],
+                                                     watch=("torch", *TRAINING_STACK))
+    assert code == 0, output
+    assert (tmp_path / "frame.denoised.exr").is_file()
+    assert loaded == ["torch"], f"denoise loaded {loaded[1:]}"
 
 
 @pytest.mark.parametrize("command", ["render", "dataset", "tile", "train", "eval", "cache"])

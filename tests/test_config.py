@@ -65,7 +65,7 @@ def test_the_paper_config_is_the_settings_defaults():
     """The defaults are what a checkpoint missing a key is read with (ModelSettings.from_saved), and
     the paper's scale as the docstrings say."""
     from admc.model.nets.settings import ModelSettings
-    from admc.model.training.settings import TrainSettings
+    from admc.model.train_settings import TrainSettings
 
     paper = load_config(REPO / "configs" / "paper.toml")
     assert (paper.model, paper.train) == (ModelSettings(), TrainSettings())

@@ -18,7 +18,7 @@ from rank_helpers import outlive_a_peer
 from admc.errors import TrainingError
 from admc.model.nets.settings import ModelSettings
 from admc.model.training import distributed
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import train
 from admc.pipeline.config import load_config
 from admc.pipeline.stages.train import run_training

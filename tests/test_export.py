@@ -111,10 +111,11 @@ def test_a_slim_generator_exports_and_equals_torch_in_onnx_runtime():
     """model.cfm_per_block = model.condition_layers = 1 (one CFM per block, one-conv condition nets) exports
     like the paper's layout; same tolerance (fewer convs on the chain, the same bound holds)."""
     from admc.model.inference.export import generator_graph
-    from admc.model.nets.generator import Generator, GeneratorConfig
+    from admc.model.nets.generator import Generator
+    from admc.model.nets.settings import ModelSettings
 
     torch.manual_seed(0)
-    generator = Generator(GeneratorConfig(channels=16, blocks=4, cond_channels=16, encoder_channels=32,
+    generator = Generator(ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32,
                                           input_skip=True, cfm_per_block=1, condition_layers=1)).eval()
     for p in generator.parameters():  # larger than the init's, so every layer changes the output
         torch.nn.init.normal_(p, std=0.1)

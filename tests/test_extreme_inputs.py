@@ -67,7 +67,7 @@ def extreme_cases(rng):
 def model(tmp_path_factory, inference_dtype):
     torch.manual_seed(0)
     weights = tmp_path_factory.mktemp("w") / "tiny.pt"
-    branches = {b: {"generator": Generator(TINY.generator_config()).state_dict(),
+    branches = {b: {"generator": Generator(TINY).state_dict(),
                     "critic": torch.nn.Linear(1, 1).state_dict()} for b in ("diffuse", "specular")}
     export_weights(weights, branches, {"model": dataclasses.asdict(TINY), "transform": transform_spec()})
     return load_denoiser(weights, tile=64, dtype=inference_dtype)
@@ -199,7 +199,7 @@ def test_output_is_zero_where_nothing_is_lit_within_the_receptive_radius(shipped
     """Exactly zero, for the shipped weights and a paper-configured (no input skip) network alike;
     also without a coverage layer (a user's EXR), so the gate is what keeps it black there."""
     torch.manual_seed(0)
-    paper_like = dataclasses.replace(TINY, input_skip=input_skip).generator_config()
+    paper_like = dataclasses.replace(TINY, input_skip=input_skip)
     models = [FullImageDenoiser(Generator(paper_like), Generator(paper_like), dtype=shipped.dtype)]
     if input_skip:
         models.append(shipped)

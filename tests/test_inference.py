@@ -7,10 +7,11 @@ from torch import nn
 from admc.common.buffers import MISSING_DEPTH
 from admc.model.inference.denoiser import LOG_MAX, FullImageDenoiser
 from admc.model.inference.tiling import CPU_TILE, GPU_TILE, OPENVINO_TILE, axis_windows, default_tile, receptive_radius, run_tiled
-from admc.model.nets.generator import Generator, GeneratorConfig, light_within, scaled_kaiming_
+from admc.model.nets.generator import Generator, light_within, scaled_kaiming_
+from admc.model.nets.settings import ModelSettings
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
 
-TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
+TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
 LOG_TOLERANCE = 1e-5
 """Tiled and untiled convolutions sum the same products in another order (oneDNN picks its kernel by
 shape, AVX-512 or AMX): float32 rounding, ~n * 6e-8 relative per conv with fan-in n = 72 here, through
@@ -78,7 +79,7 @@ def render_layers(height, width, seed=0, specular=True):
 
 
 def test_receptive_radius_is_two_per_block_plus_four_and_matches_an_impulse():
-    assert receptive_radius(Generator(GeneratorConfig())) == 36  # paper config: 73x73 field
+    assert receptive_radius(Generator(ModelSettings())) == 36  # paper config: 73x73 field
     g = strong_generator(0)
     radius = receptive_radius(g)
     assert radius == 2 * TINY.blocks + 4
@@ -359,7 +360,7 @@ class FeatureEcho(nn.Module):
 
     def __init__(self, noise_input: bool):
         super().__init__()
-        self.config = GeneratorConfig(noise_input=noise_input)
+        self.config = ModelSettings(noise_input=noise_input)
         self.seen = []
 
     def forward(self, noisy, features):
@@ -428,7 +429,7 @@ def test_weights_without_the_noise_input_ignore_variance_layers_bit_for_bit():
 def noise_generator(seed: int, scale: float = 1.0, input_skip: bool = False) -> Generator:
     """strong_generator with the noise input: its encoder's weights on the noise channel are as large as the others'."""
     torch.manual_seed(seed)
-    g = Generator(GeneratorConfig(**{**TINY.__dict__, "noise_input": True, "input_skip": input_skip})).eval()
+    g = Generator(ModelSettings(**{**TINY.__dict__, "noise_input": True, "input_skip": input_skip})).eval()
     scaled_kaiming_(g, scale)
     with torch.no_grad():
         for m in g.modules():

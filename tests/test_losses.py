@@ -5,8 +5,9 @@ import torch
 from torch import nn
 
 from admc.common import metrics
-from admc.model.nets.critic import Critic, CriticConfig
-from admc.model.nets.generator import Generator, GeneratorConfig
+from admc.model.nets.critic import Critic
+from admc.model.nets.generator import Generator
+from admc.model.nets.settings import ModelSettings
 from admc.model.nets.losses import critic_loss, display, display_ssim_loss, generator_loss, gradient_penalty, log_floor
 
 
@@ -50,7 +51,7 @@ def test_gradient_penalty_is_float32_and_unchanged_under_bf16_autocast():
 
 def test_gradient_penalty_of_a_real_critic_matches_float32_under_autocast():
     torch.manual_seed(0)
-    critic = Critic(CriticConfig(base_channels=4, patch_size=32))
+    critic = Critic(ModelSettings(critic_channels=4), patch_size=32)
     real, fake = torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32)
     torch.manual_seed(1)
     reference = gradient_penalty(critic, real, fake)
@@ -170,7 +171,7 @@ def test_critic_loss_is_half_the_negative_wasserstein_estimate_plus_weighted_gp(
 
 def test_tiny_generator_overfits_fixed_patches_with_l1():
     torch.manual_seed(0)
-    g = Generator(GeneratorConfig(channels=16, blocks=2, cond_channels=8, encoder_channels=16))
+    g = Generator(ModelSettings(channels=16, blocks=2, cond_channels=8, encoder_channels=16))
     clean = torch.rand(4, 3, 16, 16)
     noisy, features = clean + 0.1 * torch.randn_like(clean), torch.rand(4, 7, 16, 16)
     opt = torch.optim.Adam(g.parameters(), lr=3e-3)
@@ -187,8 +188,8 @@ def test_tiny_generator_overfits_fixed_patches_with_l1():
 @pytest.mark.parametrize("norm", ["layer", "batch"])
 def test_one_wgan_gp_step_on_tiny_nets(norm):
     torch.manual_seed(0)
-    g = Generator(GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16))
-    d = Critic(CriticConfig(base_channels=8, norm=norm, patch_size=32))
+    g = Generator(ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16))
+    d = Critic(ModelSettings(critic_channels=8, critic_norm=norm), patch_size=32)
     opt_g, opt_d = torch.optim.Adam(g.parameters(), 1e-4), torch.optim.Adam(d.parameters(), 1e-4)
     noisy, features, clean = torch.rand(2, 3, 32, 32), torch.rand(2, 7, 32, 32), torch.rand(2, 3, 32, 32)
     d_before = [p.detach().clone() for p in d.parameters()]

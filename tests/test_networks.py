@@ -2,11 +2,11 @@
 import pytest
 import torch
 
-from admc.model.nets.critic import Critic, CriticConfig
+from admc.model.nets.critic import Critic
 from admc.model.nets.encoder import EncoderNet
-from admc.model.nets.configs import MODES
-from admc.model.nets.generator import CFMLayer, Generator, GeneratorConfig
+from admc.model.nets.generator import CFMLayer, Generator
 from admc.model.nets.losses import generator_loss
+from admc.model.nets.settings import MODES, ModelSettings
 
 TINY = dict(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
 
@@ -43,7 +43,7 @@ def test_encoder_keeps_resolution_and_gives_the_condition_channels():
 @pytest.mark.parametrize("mode", MODES)
 def test_every_mode_trains_one_step(mode):
     torch.manual_seed(0)
-    g = Generator(GeneratorConfig(**TINY, mode=mode))
+    g = Generator(ModelSettings(**TINY, mode=mode))
     noisy, features, clean = torch.rand(2, 3, 32, 32), torch.rand(2, 7, 32, 32), torch.rand(2, 3, 32, 32)
     before = [p.detach().clone() for p in g.parameters()]
     out = g(noisy, features)
@@ -57,7 +57,7 @@ def test_every_mode_trains_one_step(mode):
 
 @pytest.mark.parametrize("mode", MODES)
 def test_modes_have_the_cfm_parts_they_claim(mode):
-    g = Generator(GeneratorConfig(**TINY, mode=mode))
+    g = Generator(ModelSettings(**TINY, mode=mode))
     cfms = [m for m in g.modules() if isinstance(m, CFMLayer)]
     if mode in ("none", "concat"):
         assert cfms == [] and g.encoder is None
@@ -70,14 +70,14 @@ def test_modes_have_the_cfm_parts_they_claim(mode):
 
 @pytest.mark.parametrize("mode", ["cfm", "concat", "none"])
 def test_output_shape_matches_odd_input_sizes(mode):
-    g = Generator(GeneratorConfig(**TINY, mode=mode)).eval()
+    g = Generator(ModelSettings(**TINY, mode=mode)).eval()
     with torch.no_grad():
         assert g(torch.rand(1, 3, 33, 47), torch.rand(1, 7, 33, 47)).shape == (1, 3, 33, 47)
 
 
 def test_channels_last_gives_the_same_output():
     torch.manual_seed(0)
-    g = Generator(GeneratorConfig(**TINY)).eval()
+    g = Generator(ModelSettings(**TINY)).eval()
     noisy, features = torch.rand(2, 3, 17, 23), torch.rand(2, 7, 17, 23)
     with torch.no_grad():
         expected = g(noisy, features)
@@ -87,8 +87,8 @@ def test_channels_last_gives_the_same_output():
 
 
 def test_none_mode_needs_no_features_and_others_reject_bad_ones():
-    assert Generator(GeneratorConfig(**TINY, mode="none"))(torch.rand(1, 3, 8, 8)).shape == (1, 3, 8, 8)
-    g = Generator(GeneratorConfig(**TINY))
+    assert Generator(ModelSettings(**TINY, mode="none"))(torch.rand(1, 3, 8, 8)).shape == (1, 3, 8, 8)
+    g = Generator(ModelSettings(**TINY))
     with pytest.raises(ValueError, match="features are required"):
         g(torch.rand(1, 3, 8, 8))
     with pytest.raises(ValueError, match="features must be"):
@@ -96,11 +96,11 @@ def test_none_mode_needs_no_features_and_others_reject_bad_ones():
     with pytest.raises(ValueError, match="noisy must be"):
         g(torch.rand(1, 4, 8, 8), torch.rand(1, 7, 8, 8))
     with pytest.raises(ValueError, match="mode"):
-        GeneratorConfig(mode="film")
+        Generator(ModelSettings(mode="film"))
 
 
 def test_paper_generator_has_the_authors_parameter_count():
-    g = Generator(GeneratorConfig())
+    g = Generator(ModelSettings())
     assert count(g) == 1_530_019  # 1.53 M in the implementation notes
     assert count(g.encoder) == 61_856  # ~62 k
     assert count(g.body_cfm) == 6_336  # ~6.3 k per CFM layer
@@ -108,14 +108,14 @@ def test_paper_generator_has_the_authors_parameter_count():
 
 def test_generator_init_is_kaiming_fan_in_scaled_by_a_tenth():
     torch.manual_seed(0)
-    conv = Generator(GeneratorConfig()).blocks[0].conv1  # 64 -> 64, 3x3: fan-in 576
+    conv = Generator(ModelSettings()).blocks[0].conv1  # 64 -> 64, 3x3: fan-in 576
     expected_std = 0.1 * (2.0 / 576) ** 0.5
     assert conv.weight.std().item() == pytest.approx(expected_std, rel=0.02)
     assert torch.count_nonzero(conv.bias) == 0
 
 
 def test_parameter_groups_split_head_and_tail_from_the_body():
-    g = Generator(GeneratorConfig(**TINY))
+    g = Generator(ModelSettings(**TINY))
     groups = g.parameter_groups()
     head_tail = sum(p.numel() for p in groups["head_tail"])
     assert head_tail == count(g.head) + count(g.tail)
@@ -124,12 +124,12 @@ def test_parameter_groups_split_head_and_tail_from_the_body():
 
 @pytest.mark.parametrize("norm,expected", [("none", 14_496_521), ("layer", 14_502_281), ("batch", 14_502_281)])
 def test_paper_critic_parameter_count(norm, expected):
-    n = count(Critic(CriticConfig(norm=norm)))
+    n = count(Critic(ModelSettings(critic_norm=norm)))
     assert n == expected and abs(n - 14.5e6) / 14.5e6 < 0.1
 
 
 def test_paper_critic_scores_128_patches():
-    c = Critic(CriticConfig())
+    c = Critic()
     assert c.classifier[0].in_features == 8192
     with torch.no_grad():
         assert c(torch.rand(2, 3, 128, 128)).shape == (2, 1)
@@ -137,7 +137,7 @@ def test_paper_critic_scores_128_patches():
 
 @pytest.mark.parametrize("norm", ["none", "layer", "batch"])
 def test_tiny_critic_on_32_patches(norm):
-    c = Critic(CriticConfig(base_channels=8, norm=norm, patch_size=32))
+    c = Critic(ModelSettings(critic_channels=8, critic_norm=norm), patch_size=32)
     assert c.classifier[0].in_features == 64  # 8 * 8 channels at 1x1
     out = c(torch.rand(3, 3, 32, 32))
     assert out.shape == (3, 1) and torch.isfinite(out).all()
@@ -145,23 +145,22 @@ def test_tiny_critic_on_32_patches(norm):
 
 def test_critic_rejects_wrong_patch_sizes():
     with pytest.raises(ValueError, match="patch_size"):
-        CriticConfig(patch_size=48)
-    with pytest.raises(ValueError, match="norm"):
-        CriticConfig(norm="instance")
+        Critic(patch_size=48)
+    with pytest.raises(ValueError, match="critic_norm"):
+        Critic(ModelSettings(critic_norm="instance"))
     with pytest.raises(ValueError, match=r"\(N, 3, 32, 32\)"):
-        Critic(CriticConfig(base_channels=8, patch_size=32))(torch.rand(1, 3, 64, 64))
+        Critic(ModelSettings(critic_channels=8), patch_size=32)(torch.rand(1, 3, 64, 64))
 
 
 def test_input_skip_starts_at_the_identity():
     """With the tail's last conv zeroed, an input-skip generator returns its (non-negative) input."""
-    from admc.model.nets.generator import Generator, GeneratorConfig
     torch.manual_seed(0)
-    net = Generator(GeneratorConfig(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_skip=True))
+    net = Generator(ModelSettings(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_skip=True))
     torch.nn.init.zeros_(net.tail[2].weight)
     torch.nn.init.zeros_(net.tail[2].bias)
     noisy, features = torch.rand(2, 3, 9, 11), torch.rand(2, 7, 9, 11)
     torch.testing.assert_close(net(noisy, features), noisy)
-    plain = Generator(GeneratorConfig(channels=8, blocks=1, cond_channels=8, encoder_channels=8))
+    plain = Generator(ModelSettings(channels=8, blocks=1, cond_channels=8, encoder_channels=8))
     torch.nn.init.zeros_(plain.tail[2].weight)
     torch.nn.init.zeros_(plain.tail[2].bias)
     with torch.no_grad():
@@ -184,16 +183,15 @@ def test_weights_without_the_noise_input_widen_to_the_same_function(mode, backbo
     import dataclasses
 
     from admc.model.nets.backbones import build_generator
-    from admc.model.nets.settings import ModelSettings
     from admc.model.training.resume import with_noise_input
 
     model = ModelSettings(**TINY, mode=mode, backbone=backbone, levels=2, base=base, input_skip=True)
     torch.manual_seed(0)
-    old = build_generator(model.generator_config())
+    old = build_generator(model)
     for p in old.parameters():  # every weight nonzero, the refiner's zero-started tail too
         torch.nn.init.normal_(p, std=0.1)
     wide_model = dataclasses.replace(model, noise_input=True)
-    wide = build_generator(wide_model.generator_config())
+    wide = build_generator(wide_model)
     wide.load_state_dict(with_noise_input(old.state_dict(), wide_model))
     old, wide = old.double(), wide.double()
     noisy, feats = torch.rand(2, 3, 16, 16, dtype=torch.float64), torch.rand(2, 7, 16, 16, dtype=torch.float64)
@@ -214,7 +212,6 @@ def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_t
     import dataclasses
 
     from admc.model.nets.backbones import build_generator
-    from admc.model.nets.settings import ModelSettings
     from admc.model.training.resume import load_init
     from admc.pipeline.weights import WEIGHTS_DIR, shipped_weights
     from admc.stores.checkpoints import read_networks
@@ -236,7 +233,7 @@ def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_t
                 assert torch.equal(new[key][:, 7], torch.zeros_like(tensor[:, 0]))
             else:
                 assert torch.equal(new[key], tensor), key
-        before, after = build_generator(plain.generator_config()), build_generator(model.generator_config())
+        before, after = build_generator(plain), build_generator(model)
         before.load_state_dict({k: v.double() for k, v in old.items()})
         after.load_state_dict({k: v.double() for k, v in new.items()})
         before, after = before.double().eval(), after.double().eval()
@@ -252,8 +249,8 @@ def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_t
 def test_slimmer_generators_have_the_layers_they_claim_and_train(cfm_per_block, condition_layers):
     """model.cfm_per_block / model.condition_layers: fewer full-resolution 1x1 convs, the same receptive field."""
     torch.manual_seed(0)
-    full = Generator(GeneratorConfig(**TINY))
-    g = Generator(GeneratorConfig(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers))
+    full = Generator(ModelSettings(**TINY))
+    g = Generator(ModelSettings(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers))
     cfms = [m for m in g.modules() if isinstance(m, CFMLayer)]
     assert len(cfms) == TINY["blocks"] * cfm_per_block + 1  # the blocks' and the body's last
     for cfm in cfms:
@@ -268,12 +265,10 @@ def test_slimmer_generators_have_the_layers_they_claim_and_train(cfm_per_block, 
 
 @pytest.mark.parametrize("key, value", [("cfm_per_block", 3), ("condition_layers", 0)])
 def test_slimness_settings_outside_one_or_two_are_refused_naming_the_key(key, value):
-    from admc.model.nets.settings import ModelSettings
-
     with pytest.raises(ValueError, match=rf"^{key}: must be 1 or 2, got {value}"):
         ModelSettings(**{key: value}).check()
-    with pytest.raises(ValueError, match=rf"GeneratorConfig.{key}: must be 1 or 2"):
-        GeneratorConfig(**{key: value})
+    with pytest.raises(ValueError, match=rf"^{key}: must be 1 or 2"):
+        Generator(ModelSettings(**{key: value}))
 
 
 # Slimming by least squares (model/training/slimming.py) in float64. Where the slim network can compute the
@@ -297,13 +292,13 @@ def _slim_pair(cfm_per_block: int, condition_layers: int, encoder_nonnegative: b
     from admc.model.training.slimming import slim_generator
 
     torch.manual_seed(0)
-    full = Generator(GeneratorConfig(**TINY)).double()
+    full = Generator(ModelSettings(**TINY)).double()
     for p in full.parameters():
         torch.nn.init.normal_(p, std=0.2)
     _affine_condition_nets(full)
     if encoder_nonnegative:  # condition maps >= 0: the affine condition nets see only inputs they pass through
         full.encoder.layers.append(torch.nn.ReLU())
-    slim = Generator(GeneratorConfig(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers)).double()
+    slim = Generator(ModelSettings(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers)).double()
     if encoder_nonnegative:
         slim.encoder.layers.append(torch.nn.ReLU())
     batch = {"noisy": torch.rand(2, 3, 24, 24, dtype=torch.float64),

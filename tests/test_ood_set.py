@@ -66,7 +66,7 @@ def test_checkpoints_can_be_selected_on_the_ood_set(tmp_path):
     out-of-family set, the corpus is all train; a store whose val split holds other scenes is refused."""
     from conftest import tiny_store_overrides
 
-    from admc.pipeline.stages.corpus import StageError
+    from admc.errors import StageError
     from admc.pipeline.stages.dataset import build_dataset
     from admc.pipeline.stages.train import check_splits
     from admc.stores import patches

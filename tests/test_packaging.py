@@ -21,9 +21,17 @@ def _source_copy(dest: Path) -> Path:
     folders = set(pyproject["tool"]["setuptools"]["package-dir"].values())
     for folder in folders:
         shutil.copytree(REPO / folder, dest / folder, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "setup.py", "README.md"):
         shutil.copy(REPO / name, dest / name)
     return dest
+
+
+def _package_files(source: Path) -> set[str]:
+    """Every file of the package folders of `source` (modules and package data), as the wheel names it."""
+    folders = tomllib.loads((source / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    return {f"{package.replace('.', '/')}/{path.relative_to(source / folder).as_posix()}"
+            for package, folder in folders.items() for path in (source / folder).rglob("*")
+            if path.is_file() and "__pycache__" not in path.parts}
 
 
 @pytest.mark.slow
@@ -35,6 +43,11 @@ def test_a_wheel_ships_the_weights_and_its_install_finds_them(tmp_path):
     shipped = [entry["file"] for entry in json.loads((REPO / "weights" / "manifest.json").read_text())["weights"]]
     listed = set(zipfile.ZipFile(wheel).namelist())
     assert {f"admc/weights/{name}" for name in ["manifest.json", *shipped]} <= listed
+    # every module (the packages are found by setup.py, not listed by hand) and every data file: configs,
+    # weights, the report's templates
+    assert _package_files(source) - listed == set()
+    assert {"admc/configs/default.toml", "admc/pipeline/evaluation/templates/report.html",
+            "admc/pipeline/render/scenes/families.py"} <= listed
 
     site = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--target", str(site),

@@ -14,7 +14,6 @@ from admc.model import transforms as tf
 from admc.model.inference.denoiser import FullImageDenoiser
 from admc.model.inference.oidn_base import oidn_bases
 from admc.model.nets.backbones import build_generator
-from admc.model.nets.generator import GeneratorConfig
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.trainer import train
 from admc.pipeline.config import ConfigError, load_config
@@ -29,7 +28,7 @@ TINY = dict(channels=8, blocks=1, cond_channels=8, encoder_channels=8, input_ski
 
 def refiner(backbone="residual", base="oidn"):
     torch.manual_seed(0)
-    return build_generator(GeneratorConfig(**TINY, backbone=backbone, base=base))
+    return build_generator(ModelSettings(**TINY, backbone=backbone, base=base))
 
 
 @pytest.mark.parametrize("backbone", ["residual", "unet"])
@@ -57,7 +56,7 @@ def test_base_is_required_exactly_when_the_generator_refines():
     with pytest.raises(ValueError, match="base image"):
         refiner()(noisy, feats)
     with pytest.raises(ValueError, match="takes no base"):
-        build_generator(GeneratorConfig(**TINY))(noisy, feats, noisy)
+        build_generator(ModelSettings(**TINY))(noisy, feats, noisy)
     with pytest.raises(ValueError, match="base"):
         ModelSettings(mode="none", base="oidn").check()
 

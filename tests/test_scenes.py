@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from admc.pipeline.render.scenes import (
+    CONSTRUCTS,
     FAMILIES,
+    OOD_CONSTRUCTS,
     SceneError,
     SceneSpec,
     analyse,
@@ -23,6 +25,7 @@ from admc.pipeline.render.scenes import (
 )
 from admc.pipeline.render.scenes.meshes import bumpy_sphere, heightfield, lathe
 from admc.pipeline.render.scenes.staging import family_rng
+from admc.pipeline.scene_names import CONSTRUCT_NAMES, FAMILY_NAMES, OOD_CONSTRUCT_NAMES
 
 RES = (32, 32)
 
@@ -98,6 +101,13 @@ def test_every_fifth_room_is_purely_diffuse_and_the_others_are_not(variant):
 def test_tabletops_always_hold_a_specular_object(variant):
     for seed in range(4):
         assert analyse(load_scene(SceneSpec(f"tabletop-{seed}", "tabletop", seed, RES))).has_specular
+
+
+def test_the_config_knows_the_families_and_constructs_the_scene_code_builds():
+    """pipeline/scene_names.py, what config checks against, lists exactly the registered builders."""
+    assert tuple(FAMILIES) == FAMILY_NAMES
+    assert tuple(CONSTRUCTS) == CONSTRUCT_NAMES
+    assert tuple(OOD_CONSTRUCTS) == OOD_CONSTRUCT_NAMES
 
 
 def test_procedural_corpus_cycles_families_with_disjoint_seeds():

@@ -17,7 +17,7 @@ from admc.model.nets.backbones import build_generator
 from admc.model.nets.settings import ModelSettings
 from admc.model.training.data import load_rows
 from admc.model.training.selection import BestNetworks, improvement_z, selection_values
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import train
 from admc.model.training.validation import baseline_scores, validate
 from admc.stores.checkpoints import load_checkpoint, load_weights
@@ -173,7 +173,7 @@ def test_the_baseline_is_the_input_scored_as_an_output_would_be(store, branch):
     # baseline_scores runs once per run; it must score exactly what validate would give a network that
     # returns its input: a skip generator whose correction is zero
     rows = load_rows(PatchReader(store, "val", branch=branch), 8)
-    generator = build_generator(TINY.generator_config())
+    generator = build_generator(TINY)
     with torch.no_grad():
         for p in generator.tail[-2].parameters():
             p.zero_()

@@ -17,7 +17,7 @@ def _cfg(tmp_path, *overrides: str):
 
 def _sbatch_lines(cfg) -> tuple[list[str], str]:
     pytest.importorskip("dask_jobqueue", reason="the optional extra is not installed: pip install '.[cluster]'")
-    with slurm.slurm_cluster(cfg) as cluster:
+    with slurm.slurm_cluster(cfg.cluster, cfg.workdir_path("slurm-logs").resolve()) as cluster:
         script = cluster.job_script()
     lines = script.splitlines()
     return [line.removeprefix("#SBATCH ") for line in lines if line.startswith("#SBATCH")], lines[-1]
@@ -54,7 +54,8 @@ def test_missing_extra_is_a_user_error_naming_the_key(tmp_path, monkeypatch, var
 
 
 def test_other_schedulers_pass_through(tmp_path):
-    with slurm.scheduler_address(load_config(None, ["run.scheduler=tcp://10.0.0.5:8786"])) as address:
+    cfg = load_config(None, ["run.scheduler=tcp://10.0.0.5:8786"])
+    with slurm.scheduler_address(cfg.run.scheduler, cfg.cluster, tmp_path) as address:
         assert address == "tcp://10.0.0.5:8786"
 
 

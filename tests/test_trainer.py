@@ -12,11 +12,10 @@ import zarr
 from zarr.storage import LocalStore
 
 from conftest import build_tiny_store, preset
-from admc.model.nets.configs import MODES
-from admc.model.nets.settings import ModelSettings
+from admc.model.nets.settings import MODES, ModelSettings
 from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
                                      read_networks, save_checkpoint)
@@ -479,11 +478,11 @@ def _teacher_weights(tmp_path, model, seed=3):
     torch.manual_seed(seed)
     branches = {}
     for b in ("diffuse", "specular"):
-        generator = build_generator(model.generator_config())
+        generator = build_generator(model)
         with torch.no_grad():  # far from the student's near-zero start, so there is a gap to close
             for p in generator.parameters():
                 p.normal_(0.0, 0.1)
-        branches[b] = {"generator": generator.state_dict(), "critic": Critic(model.critic_config(32)).state_dict()}
+        branches[b] = {"generator": generator.state_dict(), "critic": Critic(model, 32).state_dict()}
     path = tmp_path / "teacher.pt"
     export_weights(path, branches, {"model": dataclasses.asdict(model), "transform": {}})
     return path

@@ -9,19 +9,19 @@ from torch import nn
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
 from admc.model.inference.tiling import receptive_radius, run_tiled
 from admc.model.nets.backbones import build_generator
-from admc.model.nets.generator import Generator, GeneratorConfig, scaled_kaiming_
+from admc.model.nets.generator import Generator, scaled_kaiming_
 from admc.model.nets.settings import ModelSettings
 from admc.model.nets.unet import UNetGenerator
 from admc.model.training.branch import BranchTrainer
-from admc.model.training.settings import TrainSettings
+from admc.model.train_settings import TrainSettings
 from admc.model.transforms import EPS, diffuse_forward, transform_spec
 from admc.stores.checkpoints import export_weights
 from test_inference import log_tolerance
 
-TINY = GeneratorConfig(channels=4, blocks=1, cond_channels=4, encoder_channels=8, backbone="unet", levels=2)
+TINY = ModelSettings(channels=4, blocks=1, cond_channels=4, encoder_channels=8, backbone="unet", levels=2)
 
 
-def strong_unet(seed: int, config: GeneratorConfig = TINY) -> UNetGenerator:
+def strong_unet(seed: int, config: ModelSettings = TINY) -> UNetGenerator:
     """Weights at 0.7x Kaiming and positive biases: far pixels change the output clearly, values stay O(1)."""
     torch.manual_seed(seed)
     g = build_generator(config).eval()

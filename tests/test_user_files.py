@@ -5,11 +5,12 @@ import pytest
 import torch
 
 from admc.model.inference.denoiser import FullImageDenoiser
-from admc.model.nets.generator import Generator, GeneratorConfig
+from admc.model.nets.generator import Generator
+from admc.model.nets.settings import ModelSettings
 from admc.pipeline.stages.denoise import DenoiseInputError, load_denoise_input, write_denoised
 from admc.stores.exr import ExrError, read_exr, write_exr
 
-TINY = GeneratorConfig(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
+TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16)
 H, W = 24, 40
 
 

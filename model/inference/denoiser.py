@@ -471,7 +471,8 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")
     try:
-        config = ModelSettings.from_saved(model).generator_config()
+        config = ModelSettings.from_saved(model)
+        config.check()
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: its model metadata {model} is not an architecture this code builds "
                               f"({exc})") from None

@@ -5,13 +5,14 @@ cannot import its subclass to build it.
 """
 from __future__ import annotations
 
-from .generator import Generator, GeneratorConfig
+from .generator import Generator
+from .settings import ModelSettings
 from .unet import UNetGenerator
 
 GENERATORS: dict[str, type[Generator]] = {"residual": Generator, "unet": UNetGenerator}
-"""One class per name in generator.BACKBONES (the names a config may give)."""
+"""One class per name in settings.BACKBONES (the names a config may give)."""
 
 
-def build_generator(config: GeneratorConfig) -> Generator:
+def build_generator(config: ModelSettings) -> Generator:
     """The generator of the backbone `config` names."""
     return GENERATORS[config.backbone](config)

@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .configs import GeneratorConfig
 from .encoder import EncoderNet, conv3x3
+from .settings import ModelSettings
 
 COLOR_CHANNELS = 3
 
@@ -119,7 +119,7 @@ class Generator(nn.Module):
 
     Fully convolutional with same-size (replicate-padded) convs everywhere, so any H and W work. The
     authors' network has no skip from the input to the output; `input_skip` adds one (see
-    GeneratorConfig). This class is the paper's full-resolution body; backbones.build_generator picks
+    ModelSettings). This class is the paper's full-resolution body; backbones.build_generator picks
     the backbone a config names.
 
     A refiner (`config.refines`) is called as `forward(noisy, features, base)`: the head sees the
@@ -133,7 +133,8 @@ class Generator(nn.Module):
     alignment = 1
     """Tiles must start at multiples of this (1: the network is equivariant to any shift)."""
 
-    def __init__(self, config: GeneratorConfig = GeneratorConfig()) -> None:
+    def __init__(self, config: ModelSettings = ModelSettings()) -> None:
+        config.check()
         super().__init__()
         self.config = config
         c = config.channels

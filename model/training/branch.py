@@ -33,7 +33,7 @@ from ..nets.settings import ModelSettings
 from ..precision import MEMORY_FORMAT, autocast_for, resolve_precision
 from .data import IMAGE_KEYS
 from .distributed import agree, average_gradients, average_values, current
-from .settings import TrainSettings
+from ..train_settings import TrainSettings
 from .teacher import load_teacher
 from .validation import linear_scale
 
@@ -68,8 +68,8 @@ class BranchTrainer:
         ranks = current()
         self.shard = (ranks.rank, ranks.world)  # this process's slice of each global batch
         self.dtype = resolve_precision(settings.precision, device)
-        self.generator = build_generator(model.generator_config()).to(device, memory_format=MEMORY_FORMAT)
-        self.critic = Critic(model.critic_config(patch_size)).to(device, memory_format=MEMORY_FORMAT)
+        self.generator = build_generator(model).to(device, memory_format=MEMORY_FORMAT)
+        self.critic = Critic(model, patch_size).to(device, memory_format=MEMORY_FORMAT)
         self.patch_size = patch_size
         lr = settings.lr_g(branch)
         groups = self.generator.parameter_groups()

@@ -37,7 +37,7 @@ from admc.errors import AdmcError, DeviceError, TrainingError
 
 if TYPE_CHECKING:
     from ..nets.settings import ModelSettings
-    from .settings import TrainSettings
+    from ..train_settings import TrainSettings
 
 
 class RankFailed(AdmcError, RuntimeError):

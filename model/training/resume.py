@@ -16,7 +16,7 @@ from admc.stores.checkpoints import read_networks
 
 from ..nets.generator import COLOR_CHANNELS
 from ..nets.settings import ModelSettings
-from .settings import TrainSettings
+from ..train_settings import TrainSettings
 
 # Settings a resumed run may change without changing what it computes.
 # precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the

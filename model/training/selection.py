@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .settings import SELECT_METRIC_LABELS
+from ..train_settings import SELECT_METRIC_LABELS
 
 
 def selection_values(metric: str, per_patch: dict[str, Tensor], scores: dict[str, float]) -> Tensor:

@@ -37,7 +37,7 @@ def load_teacher(path: str, branch: str, model: ModelSettings, device: torch.dev
             f"{getattr(model, k)!r}" for k in differ) + ": a teacher must read the same inputs")
     if branch not in nets:
         raise TrainingError(f"train.distill_from: {path} has no {branch} branch")
-    teacher = build_generator(teacher_model.generator_config())
+    teacher = build_generator(teacher_model)
     load_network(teacher, nets[branch]["generator"], f"{path} ({branch} generator)",
                  str(dataclasses.asdict(teacher_model)))
     teacher = teacher.to(device, memory_format=MEMORY_FORMAT).eval()

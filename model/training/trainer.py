@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from admc.errors import AdmcError, TrainingError
 from admc.stores import patches
-from admc.stores.checkpoints import export_weights, load_checkpoint, save_checkpoint
+from admc.stores.checkpoints import CHECKPOINT_NAME, WEIGHTS_NAME, export_weights, load_checkpoint, save_checkpoint
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from ..nets.settings import ModelSettings
@@ -39,11 +39,9 @@ from .progress import ProgressWindow
 from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
                      set_rng_state)
 from .selection import BestNetworks, selection_values
-from .settings import STAGES, TrainSettings
+from ..train_settings import STAGES, TrainSettings
 from .validation import baseline_scores, validate
 
-CHECKPOINT_NAME = "checkpoint.pt"
-WEIGHTS_NAME = "weights-fp16.pt"
 log = logging.getLogger("admc.train")
 
 

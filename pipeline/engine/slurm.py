@@ -3,7 +3,7 @@
 Each SLURM job runs one dask worker with one thread (one task at a time, like the local cluster:
 a render already uses every core it is given) on `cluster.cores` CPUs, `cluster.memory` and
 `cluster.gpus` GPUs. The scheduler runs inside the `admc-pipe` process, so it lives as long as the
-command; the workers must see the same `run.workdir` (a shared filesystem).
+command; the workers must see the same `run.workdir` (a shared filesystem), where `log_dir` lies.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from admc.errors import AdmcError
-from admc.pipeline.config import Config
+from admc.pipeline.config import ClusterConfig
 
 SLURM = "slurm"
 
@@ -22,36 +22,37 @@ class ClusterError(AdmcError, ValueError):
     """The SLURM cluster cannot be set up as configured (e.g. the optional extra is missing)."""
 
 
-def job_options(cfg: Config) -> dict:
-    """SLURMCluster keyword arguments for the [cluster] section (one single-threaded worker per job)."""
-    c = cfg.cluster
-    gres = [f"--gres=gpu:{c.gpus}"] if c.gpus else []
+def job_options(cluster: ClusterConfig, log_dir: Path) -> dict:
+    """SLURMCluster keyword arguments for the [cluster] section (one single-threaded worker per job), the
+    jobs' logs under `log_dir`."""
+    gres = [f"--gres=gpu:{cluster.gpus}"] if cluster.gpus else []
     return {
         "cores": 1, "processes": 1,  # worker threads: one task at a time per job
-        "job_cpu": c.cores, "memory": c.memory, "walltime": c.walltime,
-        "queue": c.queue or None, "account": c.account or None, "interface": c.interface or None,
-        "job_extra_directives": [*gres, *c.job_directives],
+        "job_cpu": cluster.cores, "memory": cluster.memory, "walltime": cluster.walltime,
+        "queue": cluster.queue or None, "account": cluster.account or None, "interface": cluster.interface or None,
+        "job_extra_directives": [*gres, *cluster.job_directives],
         "job_name": "admc", "python": sys.executable,
-        "log_directory": str(Path(cfg.run.workdir).resolve() / "slurm-logs"),
+        "log_directory": str(log_dir),
     }
 
 
-def slurm_cluster(cfg: Config):
+def slurm_cluster(cluster: ClusterConfig, log_dir: Path):
     """A SLURMCluster (its scheduler starts here, no jobs yet); ClusterError when dask-jobqueue is absent."""
     try:
         from dask_jobqueue import SLURMCluster
     except ImportError:
         raise ClusterError("config key 'run.scheduler' is 'slurm', which needs the optional dask-jobqueue "
                            "package: pip install 'admc[cluster]' (or '.[cluster]' in a checkout)") from None
-    return SLURMCluster(**job_options(cfg))
+    return SLURMCluster(**job_options(cluster, log_dir))
 
 
 @contextlib.contextmanager
-def scheduler_address(cfg: Config) -> Iterator[str]:
-    """run.scheduler as the runner takes it; for "slurm", the address of a cluster of cluster.jobs jobs."""
-    if cfg.run.scheduler != SLURM:
-        yield cfg.run.scheduler
+def scheduler_address(scheduler: str, cluster: ClusterConfig, log_dir: Path) -> Iterator[str]:
+    """run.scheduler as the runner takes it; for "slurm", the address of a cluster of cluster.jobs jobs
+    (`cluster`), their logs under `log_dir`."""
+    if scheduler != SLURM:
+        yield scheduler
         return
-    with slurm_cluster(cfg) as cluster:
-        cluster.scale(jobs=cfg.cluster.jobs)
-        yield cluster.scheduler_address
+    with slurm_cluster(cluster, log_dir) as jobs:
+        jobs.scale(jobs=cluster.jobs)
+        yield jobs.scheduler_address

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from admc.errors import AdmcError
+from admc.errors import StageError
 from admc.pipeline.config import Config
 from admc.pipeline.engine import runner, slurm
 from admc.pipeline.engine.cache import Task, TaskCache, TaskError
@@ -15,10 +15,6 @@ from admc.stores.atomic import read_json
 
 CACHED_STAGES = ("render", "tile")
 """The stages whose tasks the cache holds: render.render_tasks' and build_dataset's."""
-
-
-class StageError(AdmcError, RuntimeError):
-    """A stage cannot run as asked (e.g. tiling renders that do not exist yet)."""
 
 
 def check_cached_stage(stage: str | None) -> None:
@@ -57,7 +53,8 @@ def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str
     """Run tasks (and what they depend on) through the task cache; return published paths and how many were cached."""
     store = open_cache(cfg)
     cached = sum(store.is_done(t) for t in runner.collect(tasks).values())
-    with slurm.scheduler_address(cfg) as scheduler:
+    logs = cfg.workdir_path("slurm-logs").resolve()  # the jobs' logs, on the shared file system
+    with slurm.scheduler_address(cfg.run.scheduler, cfg.cluster, logs) as scheduler:
         published = runner.run(tasks, store, scheduler=scheduler, workers=cfg.run.workers or None,
                                progress=progress)
     return published, cached

@@ -5,16 +5,17 @@ from pathlib import Path
 
 import admc
 from admc.common import buffers, oidn
+from admc.errors import ConfigError, StageError
 from admc.model import transforms
 from admc.model.inference import oidn_base
-from admc.model.nets.configs import DOWNSAMPLING
-from admc.pipeline.config import Config, ConfigError
+from admc.model.nets.settings import DOWNSAMPLING
+from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.engine import runner
 from admc.pipeline.engine.cache import Task, code_version
 from admc.pipeline.render import tasks as render
 from admc.pipeline.render.scenes import SceneError, SceneSpec
-from admc.pipeline.stages.corpus import StageError, StageResult, open_cache, read_sidecars, run_corpus, skipped_files
+from admc.pipeline.stages.corpus import StageResult, open_cache, read_sidecars, run_corpus, skipped_files
 from admc.stores import patches
 
 TILE_CODE = code_version(tile, buffers, transforms, oidn_base, oidn, patches)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from admc.common.metrics import METRICS
-from admc.errors import AdmcError
+from admc.errors import AdmcError, StageError
 from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.evaluation import evaluate, html
@@ -21,7 +21,6 @@ from admc.pipeline.evaluation.table1 import build_table1
 from admc.pipeline.render import tasks as render
 from admc.pipeline.render import scenes
 from admc.pipeline.render.scenes import SceneSpec
-from admc.pipeline.stages.corpus import StageError
 from admc.pipeline.stages.render import render_corpus
 from admc.pipeline.weights import default_weights, load_model
 

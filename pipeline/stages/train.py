@@ -5,17 +5,17 @@ import shutil
 from collections import Counter
 from pathlib import Path
 
+from admc.errors import ConfigError, StageError
 from admc.model.precision import resolve_device
 from admc.model.training import distributed
 from admc.model.training.distributed import check_world
-from admc.model.training.trainer import CHECKPOINT_NAME, WEIGHTS_NAME, TrainResult, check_fresh_start, train
-from admc.pipeline.config import Config, ConfigError
+from admc.model.training.trainer import TrainResult, check_fresh_start, train
+from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.render import tasks as render
-from admc.pipeline.stages.corpus import StageError
 from admc.pipeline.stages.dataset import build_dataset
 from admc.pipeline.weights import shipped_mismatch, shipped_weights, train_dir
-from admc.stores.checkpoints import load_checkpoint, read_networks
+from admc.stores.checkpoints import CHECKPOINT_NAME, WEIGHTS_NAME, load_checkpoint, read_networks
 
 
 def run_training(cfg: Config, stage: str, init_from: Path | None = None, restart: bool = False,

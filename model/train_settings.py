@@ -1,4 +1,5 @@
-"""Training settings: the `[train]` section of a run config (`[model]` is nets/settings.py).
+"""Training settings: the `[train]` section of a run config (`[model]` is nets/settings.py). Torch-free and
+outside training/: the config and every command read them, and denoising loads no training module.
 
 Fields use only int/float/str/bool/tuple so the generic TOML loader can type-check them; `check()`
 raises ValueError("<field>: <problem>"). The dataclass defaults are the paper's scale (values from
@@ -11,7 +12,7 @@ from dataclasses import dataclass
 
 from admc.common.layout import BRANCHES
 
-from ..checks import non_negative_ints, positive_ints, require
+from .checks import non_negative_ints, positive_ints, require
 
 SELECT_METRIC_LABELS = {"relmse": "relMSE", "relmse+ssim": "relMSE+1-SSIM score"}
 """train.select_metric -> its name in notes (selection.py: what each ranks by)."""
