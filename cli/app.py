@@ -219,6 +219,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                                "torch on a GPU) | torch | onnxruntime | openvino "
                                                                "(docs/engines.md). Default: the config's "
                                                                "eval.engine.")] = None,
+            oidn_blend: Annotated[bool, typer.Option(help="Blend with OIDN's output at the shares fine-tuned weights "
+                                                          "ship (train.oidn_blend); --no-oidn-blend: the networks' "
+                                                          "output alone.")] = True,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
     """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
     from admc.pipeline.stages.denoise import DenoiseInputError, check_output_path, load_denoise_input, output_paths
@@ -238,7 +241,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             if model is None:  # after the first input checks out, so a bad one is named without loading torch
                 from admc.pipeline.weights import load_model
                 model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
-                                   engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
+                                   engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved,
+                                   oidn_blend=oidn_blend)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             missing = model.missing_layers(source.layers)
             if missing:

@@ -61,6 +61,8 @@ class TrainSettings:
     val_every: int = 5_000                # 0 = no validation
     val_patches: int = 64
     select_metric: str = "relmse"         # what ranks validated steps: relmse | relmse+ssim (selection.py)
+    oidn_blend: bool = False              # choose, on the val patches, the share of its own output a model keeps
+                                          # when blended with OIDN's (the rest OIDN's): shipped with the weights
     select_z: float = 2.0                 # a fine-tuning ships a step only this many standard errors better than
                                           # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -94,6 +96,7 @@ class TrainSettings:
         require(all(isinstance(m, int) and m >= 1 for m in milestones) and milestones == sorted(set(milestones)),
                 "lr_milestones", f"must be strictly increasing ints >= 1, got {milestones}")
         require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
+        require(isinstance(self.oidn_blend, bool), "oidn_blend", f"must be true or false, got {self.oidn_blend!r}")
         require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
         require(self.select_metric in SELECT_METRICS, "select_metric",

@@ -79,10 +79,12 @@ def default_weights(cfg: Config) -> Path:
 
 def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int | None = None,
                name: str | None = None, ensemble: int = 1, dark_pass: bool = False,
-               engine: str = "torch", keep_resolved: bool = False) -> FullImageDenoiser:
+               engine: str = "torch", keep_resolved: bool = False, oidn_blend: bool = True) -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
     averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
     second, brighter pass if `dark_pass` (model/inference/exposure.py), its networks run by `engine` (model/inference/engines.py),
-    keeping the input's resolved detail if `keep_resolved` (model/inference/resolved.py)."""
+    keeping the input's resolved detail if `keep_resolved` (model/inference/resolved.py), blended with OIDN
+    where the weights ship a blend and `oidn_blend` (train.oidn_blend)."""
     return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
-                         ensemble=ensemble, dark_pass=dark_pass, engine=engine, keep_resolved=keep_resolved)
+                         ensemble=ensemble, dark_pass=dark_pass, engine=engine, keep_resolved=keep_resolved,
+                         oidn_blend=oidn_blend)

@@ -148,6 +148,20 @@ def load_weights(path: str | os.PathLike) -> dict[str, Any]:
     return {"branches": obj["branches"], "metadata": obj["metadata"]}
 
 
+OIDN_BLEND = "oidn_blend"
+"""The weights metadata key of the shares of each branch's output blended with OIDN's (train.oidn_blend)."""
+
+
+def read_blend(path: str | os.PathLike) -> dict[str, float]:
+    """{branch: the share of the network's output kept when blended with OIDN's} a weights file ships, or
+    {} (the network's output alone: checkpoints, and weights trained without train.oidn_blend)."""
+    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    blend = obj.get("metadata", {}).get(OIDN_BLEND, {}) if obj["format"] == WEIGHTS_FORMAT else {}
+    if not (isinstance(blend, dict) and all(isinstance(w, (int, float)) and 0 <= w <= 1 for w in blend.values())):
+        raise CheckpointError(f"{path}: its {OIDN_BLEND} metadata {blend!r} is not shares in [0, 1] per branch")
+    return {str(b): float(w) for b, w in blend.items()}
+
+
 def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     """(branch -> {"generator", "critic"} state dicts, model settings, transform spec) from either a
     training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at. A

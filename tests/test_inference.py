@@ -479,3 +479,25 @@ def test_non_finite_network_outputs_are_counted_and_set_to_zero():
     assert result.nonfinite_outputs == 6 and np.isfinite(result.image).all()
     assert result.diffuse[1, 1, 0] == 0 and result.specular[2, 3, 1] == 0  # log 0 -> 0 radiance
     assert result.specular[4, 5, 2] == 0
+
+
+def test_an_oidn_blend_mixes_each_branch_with_oidns_own_output_at_its_share():
+    """train.oidn_blend's shares at inference: each branch's output is share * admc + (1 - share) * OIDN's
+    per-branch output (oidn_bases at high, on the same sanitised input); the image is their sum. A refiner,
+    whose output already starts from OIDN's, takes no blend."""
+    from admc.model.inference.denoiser import sanitize_layers
+    from admc.model.inference.oidn_base import oidn_bases
+    layers = render_layers(40, 48, seed=5)
+    diffuse, specular = strong_generator(1), strong_generator(2)
+    plain = FullImageDenoiser(diffuse, specular, dtype=torch.float32)(layers)
+    shares = {"diffuse": 0.25, "specular": 0.6}
+    blended = FullImageDenoiser(diffuse, specular, dtype=torch.float32, oidn_blend=shares)(layers)
+    oidn = oidn_bases(sanitize_layers(layers)[0], "oidn")
+    for branch, share in shares.items():  # float32 arithmetic on values of order 1-10: a few ulps
+        want = share * getattr(plain, branch) + (1 - share) * oidn[branch]
+        np.testing.assert_allclose(getattr(blended, branch), want, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(blended.image, blended.diffuse + blended.specular, rtol=1e-6, atol=1e-6)
+    assert "blended with OIDN" in FullImageDenoiser(diffuse, specular, oidn_blend=shares).device
+    refiner_settings = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, base="oidn")
+    with pytest.raises(ValueError, match="refiner"):
+        FullImageDenoiser(Generator(refiner_settings), None, oidn_blend=shares)

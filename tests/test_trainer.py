@@ -191,6 +191,38 @@ def test_validation_shows_each_branch_against_its_start_and_oidn_on_the_same_pat
         assert f"{val['relmse_vs_oidn']:.3f}x OIDN" in lines[2 if branch == "diffuse" else 3]
 
 
+def test_best_blend_finds_the_share_that_halves_two_independent_errors():
+    """Two estimates with independent errors of equal size: their even blend has about half the squared
+    error of either, and best_blend finds a share near 0.5; an exact estimate keeps its whole share."""
+    from admc.model.training.validation import best_blend, to_linear
+    torch.manual_seed(0)
+    features = torch.rand(64, 7, 16, 16)
+    reference = torch.rand(64, 3, 16, 16) + 0.5
+    ref_linear = to_linear(reference, features, "specular")
+    errors = [0.05 * torch.randn(64, 3, 16, 16, dtype=torch.float64) for _ in range(2)]
+    val = {"reference": reference, "features": features, "oidn": torch.log1p(ref_linear + errors[1]).float()}
+    share, blended = best_blend(ref_linear + errors[0], val, "specular")
+    alone = float(((errors[0] ** 2) / (ref_linear ** 2 + 0.01)).mean())
+    assert 0.4 <= share <= 0.6 and blended < 0.6 * alone
+    assert best_blend(ref_linear, val, "specular")[0] == 1.0
+
+
+def test_an_oidn_blend_is_chosen_on_validation_and_shipped_with_the_weights(store, tmp_path, capsys):
+    from admc.model.inference.denoiser import load_denoiser
+    from admc.stores.checkpoints import read_blend
+    settings = dataclasses.replace(SETTINGS, steps=3, val_every=3, oidn_blend=True)
+    result = train(store, tmp_path / "blend", settings, TINY, progress=True)
+    shipped = read_blend(result.weights)
+    assert set(shipped) == {"diffuse", "specular"}
+    for branch, share in shipped.items():  # the share of the step the weights hold, as validation showed it
+        assert share == result.validation[branch]["blend_share"] or result.selected[branch]["step"] == 0
+        assert 0.0 <= share <= 1.0 and any(f"ships blended with OIDN, {share:.2f}" in n for n in result.notes)
+    assert "with OIDN, relMSE" in capsys.readouterr().err
+    assert load_denoiser(result.weights).oidn_blend == shipped
+    assert load_denoiser(result.weights, oidn_blend=False).oidn_blend == {}
+    assert read_blend(result.checkpoint) == {}  # a checkpoint carries no blend: its weights file ships it
+
+
 def test_the_moving_average_follows_the_weights_with_a_ramped_decay(store):
     torch.manual_seed(0)
     settings = dataclasses.replace(SETTINGS, ema=0.5, l1_warmup_steps=10, head_tail_start_step=0)

@@ -142,7 +142,7 @@ class FullImageDenoiser:
                  tile: int | None = None, overlap: int | None = None, dtype: torch.dtype | None = None,
                  compile: bool = False, name: str = "admc", source: str | None = None,
                  normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1,
-                 engine: str = "torch", keep_resolved: bool = False) -> None:
+                 engine: str = "torch", keep_resolved: bool = False, oidn_blend: dict[str, float] | None = None) -> None:
         if tile is not None and tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
         if ensemble not in ENSEMBLE_CODES:
@@ -190,6 +190,11 @@ class FullImageDenoiser:
         self.dark_pass = dark_pass
         self.ensemble = ensemble
         self.keep_resolved = keep_resolved
+        self.oidn_blend = dict(oidn_blend or {})
+        if self.oidn_blend and self.base != "noisy":
+            raise ValueError("FullImageDenoiser: an OIDN blend is for admc's own output (base 'noisy'), not a refiner's")
+        if self.oidn_blend:
+            self.device += ", blended with OIDN"
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         return generator.to(self.torch_device, memory_format=MEMORY_FORMAT).eval()
@@ -240,6 +245,11 @@ class FullImageDenoiser:
                 if run_specular:
                     specular[region] += share * (passes[1].specular - specular[region])
                 dark_share = float(weights.mean())
+        base_seconds = sum(p.base_seconds for p in passes)
+        if self.oidn_blend:
+            blend_start = time.perf_counter()
+            diffuse, specular = _blend_with_oidn(clean, diffuse, specular, run_specular, self.oidn_blend)
+            base_seconds += time.perf_counter() - blend_start
         resolved_share = 0.0
         if self.keep_resolved:
             diffuse, specular, resolved_share = _keep_resolved(clean, diffuse, specular, run_specular)
@@ -248,7 +258,7 @@ class FullImageDenoiser:
             branches=("diffuse", "specular")[:1 + run_specular],
             specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
             nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
-            network_seconds=sum(p.network_seconds for p in passes), base_seconds=sum(p.base_seconds for p in passes),
+            network_seconds=sum(p.network_seconds for p in passes), base_seconds=base_seconds,
             exposure_gain=gain, dark_share=dark_share, resolved_share=resolved_share,
             seconds=time.perf_counter() - start,
         )
@@ -377,6 +387,20 @@ def _keep_resolved(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: 
     return outputs["diffuse"], outputs["specular"], float(np.mean(shares)) if shares else 0.0
 
 
+def _blend_with_oidn(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None,
+                     run_specular: bool, shares: dict[str, float]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Each branch's output blended with OIDN's per-branch output (high, as a refiner's base: oidn_base.py):
+    share * output + (1 - share) * OIDN, the share a fine-tune chose on its val patches (train.oidn_blend)."""
+    branches = ("diffuse", "specular")[:1 + run_specular]
+    oidn = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)}, "oidn")
+    out = {"diffuse": diffuse, "specular": specular}
+    for branch in branches:
+        share = np.float32(shares.get(branch, 1.0))
+        if share < 1:
+            out[branch] = share * out[branch] + (1 - share) * oidn[branch]
+    return out["diffuse"], out["specular"]
+
+
 def _beauty(diffuse: np.ndarray, specular: np.ndarray | None) -> np.ndarray:
     """The final image of the two branches (a new array, never one of them)."""
     return diffuse + specular if specular is not None else diffuse.copy()
@@ -452,14 +476,16 @@ COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn", "oidn-fast": "admc+oidn"}
 def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None = None,
                   compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
                   dark_pass: bool = False, ensemble: int = 1, engine: str = "torch",
-                  dtype: torch.dtype | None = None, keep_resolved: bool = False) -> FullImageDenoiser:
+                  dtype: torch.dtype | None = None, keep_resolved: bool = False,
+                  oidn_blend: bool = True) -> FullImageDenoiser:
     """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
     named `name`, else after the base the file records (COLUMN_NAMES).
 
     Refuses weights trained on other transforms than this code applies (their outputs would be
-    inverted wrongly); a file without a specular branch denoises diffuse only.
+    inverted wrongly); a file without a specular branch denoises diffuse only. Weights that ship an OIDN
+    blend (train.oidn_blend) are blended with OIDN's output unless `oidn_blend` is False.
     """
-    from admc.stores.checkpoints import CheckpointError, load_network, read_networks
+    from admc.stores.checkpoints import CheckpointError, load_network, read_blend, read_networks
 
     from ..nets.settings import ModelSettings
     from ..transforms import transform_spec
@@ -485,4 +511,5 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
     return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
                              compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
                              normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble,
-                             engine=engine, dtype=dtype, keep_resolved=keep_resolved)
+                             engine=engine, dtype=dtype, keep_resolved=keep_resolved,
+                             oidn_blend=read_blend(path) if oidn_blend else None)

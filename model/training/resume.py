@@ -21,7 +21,7 @@ from ..train_settings import TrainSettings
 # Settings a resumed run may change without changing what it computes.
 # precision: weights, Adam states and losses stay float32 under bf16 autocast, so a run resumed in the
 # other precision continues correctly, just not bit-identically (said in a note), as after a device change.
-RESUMABLE_CHANGES = ("steps", "minutes", "val_every", "val_patches", "select_z", "checkpoint_every", "log_every",
+RESUMABLE_CHANGES = ("steps", "minutes", "oidn_blend", "val_every", "val_patches", "select_z", "checkpoint_every", "log_every",
                      "num_workers", "threads", "device", "precision", "max_bad_steps")
 
 

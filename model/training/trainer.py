@@ -25,7 +25,8 @@ from tqdm import tqdm
 
 from admc.errors import AdmcError, TrainingError
 from admc.stores import patches
-from admc.stores.checkpoints import CHECKPOINT_NAME, WEIGHTS_NAME, export_weights, load_checkpoint, save_checkpoint
+from admc.stores.checkpoints import (CHECKPOINT_NAME, OIDN_BLEND, WEIGHTS_NAME, export_weights, load_checkpoint,
+                                     save_checkpoint)
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from ..nets.settings import ModelSettings
@@ -40,7 +41,7 @@ from .resume import (check_resumable, load_init, rng_state, say_precision_change
                      set_rng_state)
 from .selection import BestNetworks, selection_values
 from ..train_settings import STAGES, TrainSettings
-from .validation import baseline_scores, validate
+from .validation import baseline_scores, best_blend, validate
 
 log = logging.getLogger("admc.train")
 
@@ -142,6 +143,7 @@ class _Run:
     validation: dict[str, dict[str, float]] = field(default_factory=dict)
     baselines: dict[str, dict[str, float]] = field(default_factory=dict)  # branch -> the val scores of its input
     start_scores: dict[str, dict[str, float]] = field(default_factory=dict)  # branch -> its first validation
+    blends: dict[str, dict[int, float]] = field(default_factory=dict)  # branch -> step -> its best OIDN blend share
     last_losses: dict[str, dict[str, float]] = field(default_factory=dict)
     transform: dict | None = None
     patch_size: int = 0
@@ -186,7 +188,7 @@ class _Run:
                 "init_from": str(self.init_from) if self.init_from is not None else None,
                 "branches": {b: t.state_dict() for b, t in self.trainers.items()},
                 "best": self.best.state_dict(), "rng": rng_state(), "seconds": self.clock.seconds(),
-                "start_scores": self.start_scores}
+                "start_scores": self.start_scores, "blends": self.blends}
 
 
 def check_fresh_start(out_dir: Path) -> None:
@@ -277,6 +279,7 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
         set_rng_state(checkpoint["rng"])
         run.best.load_state_dict(checkpoint.get("best", {}))
         run.start_scores.update(checkpoint.get("start_scores", {}))
+        run.blends.update(checkpoint.get("blends", {}))
         start = int(checkpoint["step"])
         run.clock.before = float(checkpoint.get("seconds", 0.0))
         run.say(f"resuming {run.stage} from {run.checkpoint_path} at step {start}")
@@ -295,12 +298,17 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
-        scores, per_patch = validate(trainer.shipped_generator, rows, b, run.settings.batch_size, run.device,
-                                     trainer.dtype)
+        scores, per_patch, output = validate(trainer.shipped_generator, rows, b, run.settings.batch_size,
+                                             run.device, trainer.dtype)
         if b not in run.baselines:
             run.baselines[b] = baseline_scores(rows, b)
         run.start_scores.setdefault(b, scores)  # step 0's (a checkpoint carries them over a resume)
         run.validation[b] = {**scores, **run.baselines[b], **_ratios(scores, run.start_scores[b], run.baselines[b])}
+        if run.settings.oidn_blend and "oidn" in rows:
+            share, blended = best_blend(output, rows, b)
+            run.blends.setdefault(b, {})[step] = share
+            run.validation[b].update(blend_share=share, blend_relmse=blended,
+                                     blend_relmse_vs_oidn=blended / max(run.baselines[b]["oidn_relmse"], 1e-12))
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
         run.show(f"step {step} {b} validation: " + _comparison(run.validation[b]))
         values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
@@ -329,6 +337,9 @@ def _comparison(validation: dict[str, float]) -> str:
         if f"{k}_vs_oidn" in validation:
             vs.append(f"{validation[f'{k}_vs_oidn']:.3f}x OIDN")
         parts.append(f"{label} {validation[k]:.4g} ({', '.join(vs)})")
+    if "blend_share" in validation:
+        parts.append(f"blended {validation['blend_share']:.2f} : {1 - validation['blend_share']:.2f} with OIDN, relMSE "
+                     f"{validation['blend_relmse']:.4g} ({validation['blend_relmse_vs_oidn']:.3f}x OIDN)")
     return "; ".join(parts)
 
 
@@ -406,10 +417,14 @@ def _finish(run: _Run, start: int) -> TrainResult:
     trainers = run.trainers
     if run.ranks.lead:
         nets = {b: run.best.networks(b, t.shipped_generator, t.critic) for b, t in trainers.items()}
+        blend = {b: run.blends[b][s["step"]] for b, s in selected.items() if s["step"] in run.blends.get(b, {})}
+        for b, share in blend.items():
+            run.notes.append(f"{b}: ships blended with OIDN, {share:.2f} of its own output (chosen on the val patches)")
         export_weights(run.weights_path, nets,
                        {"model": dataclasses.asdict(run.model), "transform": run.transform,
                         "patch_size": run.patch_size, "stage": run.stage, "step": last_step, "selected": selected,
-                        "store_fingerprint": run.fingerprint, "precision": run.precision})
+                        "store_fingerprint": run.fingerprint, "precision": run.precision,
+                        **({OIDN_BLEND: blend} if blend else {})})
     return TrainResult(out_dir=run.out_dir, checkpoint=run.checkpoint_path, weights=run.weights_path,
                        step=last_step, branches=list(trainers), skipped_branches=run.skipped,
                        bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=run.last_losses,

@@ -29,12 +29,17 @@ def to_linear(x: Tensor, features: Tensor, branch: str) -> Tensor:
     return x if scale is None else x * scale
 
 
+BLEND_SHARES = torch.linspace(0.0, 1.0, 21)
+"""The shares of the network's output an OIDN blend may keep (train.oidn_blend): steps of 0.05."""
+
+
 @torch.no_grad()
 def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
-             device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[dict[str, float], dict[str, Tensor]]:
+             device: torch.device, dtype: torch.dtype = torch.float32
+             ) -> tuple[dict[str, float], dict[str, Tensor], Tensor]:
     """({"psnr", "relmse", "one_minus_ssim"} of the generator's output averaged over the val patches, the
-    same {"relmse", "one_minus_ssim"} per patch), the generator run in `dtype` as in training (and as the
-    denoiser runs it on the same machine)."""
+    same {"relmse", "one_minus_ssim"} per patch, the output in linear radiance), the generator run in `dtype`
+    as in training (and as the denoiser runs it on the same machine)."""
     was_training = generator.training
     generator.eval()
     outputs = []
@@ -46,8 +51,21 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
             outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
     ref = to_linear(val["reference"], val["features"], branch)
-    per_patch = _per_patch(to_linear(torch.cat(outputs), val["features"], branch), ref)
-    return {k: float(v.mean()) for k, v in per_patch.items()}, {k: per_patch[k] for k in ("relmse", "one_minus_ssim")}
+    linear = to_linear(torch.cat(outputs), val["features"], branch)
+    per_patch = _per_patch(linear, ref)
+    return ({k: float(v.mean()) for k, v in per_patch.items()}, {k: per_patch[k] for k in ("relmse", "one_minus_ssim")},
+            linear)
+
+
+def best_blend(output: Tensor, val: dict[str, Tensor], branch: str) -> tuple[float, float]:
+    """(share, mean relMSE) of the blend share * output + (1 - share) * OIDN's output with the lowest mean
+    relMSE on the val patches, the share from BLEND_SHARES (1: the output alone). Two denoisers whose errors
+    are only partly correlated average to less error than either: what train.oidn_blend ships."""
+    ref = to_linear(val["reference"], val["features"], branch)
+    oidn = to_linear(val["oidn"], val["features"], branch)
+    means = torch.stack([relmse_torch(w * output + (1 - w) * oidn, ref).mean() for w in BLEND_SHARES.double()])
+    best = int(torch.argmin(means))
+    return float(BLEND_SHARES[best]), float(means[best])
 
 
 def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
