@@ -33,8 +33,8 @@ import numpy as np
 
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, MISSING_LAYERS, VARIANCE_LAYERS
 from admc.errors import AdmcError
-from admc.stores.exr import (channel_names, exr_layers, nonfinite_report, read_channels, read_exr, read_image,
-                             write_channels, write_exr)
+from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
+from admc.stores.exr_parts import channel_names, read_channels, write_channels
 
 from .denoise_formats import LayerMap, Recognised, recognise
 from .denoise_layers import build_layers, camera_normals, missing_roles
