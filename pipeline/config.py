@@ -49,6 +49,7 @@ class CorpusConfig:
     held_out_families: tuple[str, ...]
     xml_dirs: tuple[str, ...]
     xml_resolution: str
+    blend_dirs: tuple[str, ...]
 
     def check(self) -> None:
         from admc.pipeline.render.scenes import CONSTRUCTS, FAMILIES, OOD_CONSTRUCTS
@@ -81,6 +82,9 @@ class RenderConfig:
     max_depth: int
     seed: int
     max_spp_per_pass: int
+    blender: str
+    cycles_subrenders: int
+    blender_threads: int
 
     def check(self) -> None:
         w, h = self.resolution
@@ -93,6 +97,9 @@ class RenderConfig:
                  f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
         _require(1 <= self.max_depth <= 64, "render.max_depth", f"must be in 1..64, got {self.max_depth}")
         _require(self.max_spp_per_pass >= 1, "render.max_spp_per_pass", "must be >= 1")
+        _require(1 <= self.cycles_subrenders <= 64, "render.cycles_subrenders",
+                 f"must be in 1..64, got {self.cycles_subrenders}")
+        _require(self.blender_threads >= 0, "render.blender_threads", f"must be >= 0, got {self.blender_threads}")
 
 
 @dataclass(frozen=True)

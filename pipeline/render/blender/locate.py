@@ -5,16 +5,18 @@ In order: the setting `render.blender` (a path), the environment variable ADMC_B
 """
 from __future__ import annotations
 
+import functools
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import admc
 from admc.errors import AdmcError
 
-SETUP_HINT = ("install it with `bash scripts/setup.sh --blender` (a .venv-blender with bpy 5.0.1, the 'blender' "
-              "extra: `pip install admc[blender]` in a Python of its own, since bpy needs NumPy < 2), or set "
-              "render.blender (or ADMC_BLENDER) to a Blender executable or a Python that imports bpy")
+SETUP_HINT = ("install it with `bash scripts/setup.sh --blender` (bpy 5.0.1 in .venv-blender: bpy pins NumPy < 2, so "
+              "it cannot share admc's environment), or set render.blender (or ADMC_BLENDER) to a Blender executable "
+              "or a Python that imports bpy")
 CHECKOUT_VENV = Path(admc.__file__).resolve().parents[1] / ".venv-blender" / "bin" / "python"
 
 
@@ -46,4 +48,14 @@ def require_blender(configured: str, what: str) -> list[str]:
     if command is None:
         raise BlenderMissing(f"{what}: rendering .blend scenes needs Blender (bpy), which is not installed; "
                              f"{SETUP_HINT}")
+    if len(command) == 1 and not _has_bpy(command[0]):
+        raise BlenderMissing(f"{what}: rendering .blend scenes needs Blender (bpy), and {command[0]} cannot import "
+                             f"bpy; {SETUP_HINT}")
     return command
+
+
+@functools.cache
+def _has_bpy(python: str) -> bool:
+    """Whether a Python finds the bpy module (without importing it: that takes a second)."""
+    probe = "import importlib.util, sys; sys.exit(importlib.util.find_spec('bpy') is None)"
+    return subprocess.run([python, "-c", probe], capture_output=True, timeout=60).returncode == 0
