@@ -14,7 +14,7 @@ import pytest
 from test_cli import ADMC
 
 from admc.pipeline.render.blender.locate import blender_command
-from admc.pipeline.render.blender.passes import combine
+from admc.pipeline.render.blender.passes import combine, coverage
 from admc.pipeline.render.blender.tasks import subrender_plan
 from admc.stores.exr import read_exr
 
@@ -84,7 +84,8 @@ def test_cycles_renders_are_what_the_mitsuba_path_writes(rendered):
             assert abs(noisy[branch].mean() - reference[branch].mean()) < 0.25 * reference[branch].mean() + 1e-3
         assert noisy["diffuse_var"].mean() > 2 * reference["diffuse_var"].mean() > 0
         hit = reference["coverage"][..., 0] > 0
-        assert hit.mean() > 0.5 and (reference["depth"][hit] > 0).all()
+        assert hit.mean() > 0.5 and (reference["coverage"][reference["depth"][..., 0] > 0] == 1).all()
+        assert (reference["depth"][~hit] == 0).all()
         centre = reference["normal"][8:24, 8:24][hit[8:24, 8:24]]
         assert (centre[:, 2] > -0.2).mean() > 0.95  # camera space: what the camera sees faces it
         assert 0 <= reference["albedo"].min() and reference["albedo"].max() <= 1.0
@@ -101,6 +102,15 @@ def test_subrenders_combine_to_the_mean_and_the_variance_of_the_mean():
     plan = subrender_plan(10, 7, 4)
     assert [spp for spp, _ in plan] == [3, 3, 2, 2] and plan == subrender_plan(10, 7, 4)
     assert subrender_plan(2, 7, 4) == subrender_plan(2, 7, 2) and len(subrender_plan(1, 7, 4)) == 1
+
+
+def test_coverage_is_zero_only_where_the_environment_is_seen_directly():
+    sky = np.full((1, 3, 3), 0.7, np.float32)
+    depth = np.array([[[2.0], [0.0], [0.0]]], np.float32)          # a surface, the sky, a mirror showing the sky
+    combined = np.array([[[0.3] * 3, [0.7] * 3, [0.5] * 3]], np.float32)
+    environment = np.array([[[0.0] * 3, [0.7] * 3, [0.0] * 3]], np.float32)  # Cycles' pass: the sky seen directly
+    assert coverage(depth, combined, environment)[0, :, 0].tolist() == [1.0, 0.0, 1.0]
+    assert coverage(depth, sky, sky)[0, :, 0].tolist() == [1.0, 0.0, 0.0]
 
 
 def test_dataset_tiles_cycles_renders_like_mitsuba_ones(rendered, scenes):

@@ -43,7 +43,7 @@ BLENDER_PASSES = {
     "diffuse_direct": ("Diffuse Direct", "DiffDir"), "diffuse_indirect": ("Diffuse Indirect", "DiffInd"),
     "diffuse_colour": ("Diffuse Color", "DiffCol"),
     "albedo": ("Denoising Albedo",), "normal": ("Denoising Normal",), "world_normal": ("Normal",),
-    "depth": ("Denoising Depth", "Depth"),
+    "depth": ("Denoising Depth", "Depth"), "environment": ("Environment", "Env"),
 }
 MITSUBA_NORMALS = ("nn", "sh_normal", "normal", "normals", "sh_normals", "shading_normal")
 MITSUBA_DEPTHS = ("dd.y", "dd", "depth")
@@ -208,7 +208,8 @@ def _blender(layers, header) -> Recognised | None:
     # Cycles writes its Denoising Normal in its camera space (z forward), the Normal pass in world space.
     camera_normal = find("normal", 3)
     channels = {"colour": layer_channels(layers, prefix + "Combined", 3), "albedo": find("albedo", 3),
-                "normal": camera_normal or find("world_normal", 3), "depth": find("depth", 1)}
+                "normal": camera_normal or find("world_normal", 3), "depth": find("depth", 1),
+                "environment": find("environment", 3)}
     channels = {role: names for role, names in channels.items() if names}
     light = {role: find(role, 3) for role in ("diffuse_direct", "diffuse_indirect", "diffuse_colour")}
     found = Recognised("Blender", channels, normal_space="camera" if camera_normal else "world",

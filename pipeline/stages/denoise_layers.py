@@ -15,6 +15,7 @@ import numpy as np
 
 from admc.common.camera import facing_share, to_admc_camera, world_to_admc_camera
 from admc.errors import AdmcError
+from admc.pipeline.render.blender.passes import coverage
 
 from .denoise_formats import Recognised
 
@@ -81,7 +82,11 @@ def build_layers(path: Path, found: Recognised, planes: dict[str, np.ndarray]) -
         depth = stack("depth")
         hit = np.isfinite(depth) & (depth > 0) & (depth < NO_HIT_DEPTH)
         layers["depth"] = np.where(hit, depth, 0.0).astype(np.float32)
-        if "coverage" not in layers:
+        if "coverage" in layers:
+            pass
+        elif "environment" in found.channels and "colour" in found.channels:  # Blender: see passes.coverage
+            layers["coverage"] = coverage(layers["depth"], stack("colour"), stack("environment"))
+        else:
             layers["coverage"] = hit.astype(np.float32)
     layers["normal"], space_note = camera_normals(path, found, normal)
     notes.append(space_note)

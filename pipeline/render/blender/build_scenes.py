@@ -3,8 +3,8 @@
 
     python build_scenes.py -- JOB.json      JOB: {"out_dir": folder, "scenes": N, "seed": S, "resolution": [w, h]}
 
-Two families, alternating: `interior`, a room (textured floor, painted walls, a ceiling lamp, sometimes a
-window's sun) with furniture and glossy, glass and metal objects; `product`, one object on a curved studio
+Two families, alternating: `interior`, a closed room (textured floor, painted walls, a ceiling area light,
+sometimes a small lamp in view) with furniture and glossy, glass and metal objects; `product`, one object on a curved studio
 backdrop under two or three area lights, in metal, glass, glossy or rough plastic. The same seed writes
 the same scenes. Writes out_dir/<family>-<k>.blend and out_dir/done.json: the files written, and each scene's
 objects (name, location, material colour), which is what the seed decides (the .blend bytes also hold
@@ -129,15 +129,14 @@ def interior(rng, resolution):
         size = rng.uniform(0.12, 0.22)
         add(shape, (tx + rng.uniform(-0.6, 0.6), ty + rng.uniform(-0.3, 0.3), 0.79 + size), (size,) * 3,
             special(rng, f"object{k}"), rotation=(0, 0, rng.uniform(0, math.tau)))
-    add("cube", (rng.uniform(-1.5, 1.5), depth / 2 - 0.4, 0.45), (rng.uniform(0.4, 0.8), 0.3, 0.45),
+    cabinet_x = rng.uniform(-1.5, 1.5)
+    add("cube", (cabinet_x, depth / 2 - 0.4, 0.45), (rng.uniform(0.4, 0.8), 0.3, 0.45),
         material("cabinet", random_colour(rng), roughness=rng.uniform(0.3, 0.8)))
     area_light((0, 0, height - 0.05), (0, 0, 0), rng.uniform(0.6, 1.2), rng.uniform(150, 400),
                colour=(1.0, rng.uniform(0.85, 1.0), rng.uniform(0.7, 0.95)))
-    if rng.random() < 0.5:
-        sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
-        sun.data.energy = rng.uniform(1.0, 3.0)
-        scene.collection.objects.link(sun)
-        sun.rotation_euler = (rng.uniform(0.6, 1.0), 0, rng.uniform(0, math.tau))
+    if rng.random() < 0.5:  # a lamp seen directly: a small, bright emitter
+        add("uv_sphere", (cabinet_x + rng.uniform(-0.2, 0.2), depth / 2 - 0.4, 1.02), (0.12,) * 3,
+            material("lamp", (1.0, 0.85, 0.6), emission=rng.uniform(5.0, 15.0)))
     scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.06, 0.08, 1)
     camera((rng.uniform(-1.2, 1.2), -depth / 2 + 0.4, rng.uniform(1.3, 1.8)), (tx, ty, 0.8), rng.uniform(20, 28))
     return scene
@@ -158,7 +157,7 @@ def product(rng, resolution):
     for k in range(rng.randint(2, 3)):
         angle = rng.uniform(-2.2, 2.2)
         area_light((3.5 * math.sin(angle), -3.5 * math.cos(angle), rng.uniform(1.5, 4.0)), (0, 0, size),
-                   rng.uniform(0.5, 2.0), rng.uniform(100, 600))
+                   rng.uniform(0.5, 2.0), rng.uniform(60, 250))
     scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.02, 0.02, 0.02, 1)
     camera((rng.uniform(-1.0, 1.0), -4.5, rng.uniform(0.8, 1.8)), (0, 0, size * 0.8), rng.uniform(40, 70))
     return scene

@@ -5,7 +5,7 @@ Diffuse Color; specular = Combined - diffuse (glossy, transmission, emission and
 albedo = Denoising Albedo, clipped to 1 (Cycles gives a lamp seen directly its emission there; admc's
 renders give emitters albedo 1); normal = Denoising Normal, which Cycles writes in its camera space (x right, y
 up, z forward) and admc's frame turns z around; depth = Denoising Depth (0 where the camera ray hit
-nothing: those pixels get coverage 0). Cycles gives no per-pixel variance, so the render is made of
+nothing); coverage 0 where the environment is seen directly (`coverage`), averaged over the sub-renders. Cycles gives no per-pixel variance, so the render is made of
 several independent sub-renders (seeds of their own) and each branch's variance of the pixel mean comes
 from their spread: with K sub-renders of s_k samples (S in all) and means m_k, the per-sample variance is
 sum s_k (m_k - m)^2 / (K - 1), and the variance of the mean that divided by S.
@@ -45,9 +45,19 @@ def read_subrender(path: Path, view_layer: str) -> tuple[dict[str, np.ndarray], 
         "diffuse": diffuse, "specular": np.maximum(combined - diffuse, 0.0),
         "albedo": np.clip(rgb(FEATURES["albedo"]), 0.0, 1.0),
         "normal": to_admc_camera(rgb(FEATURES["normal"], "XYZ"), "cycles"),
-        "depth": depth, "coverage": (depth > 0).astype(np.float32),
+        "depth": depth, "coverage": coverage(depth, combined, rgb("Environment")),
     }
     return buffers, _seconds(header.get(f"cycles.{view_layer}.render_time", "0"))
+
+
+def coverage(depth: np.ndarray, combined: np.ndarray, environment: np.ndarray) -> np.ndarray:
+    """(H, W, 1): 0 where the pixel sees the environment directly (no surface depth, and Combined is the
+    Environment pass), 1 elsewhere. Cycles' denoising data follow near-specular bounces, as admc's renders
+    follow delta ones: a mirror or clear glass that shows the sky has no denoising depth, yet its pixel is
+    as noisy as the surface is curved, so it keeps coverage 1 and is denoised (admc passes coverage-0
+    pixels through unchanged)."""
+    direct = np.abs(combined - environment).sum(-1, keepdims=True) <= 1e-3 * np.abs(combined).sum(-1, keepdims=True)
+    return ((depth > 0) | ~direct).astype(np.float32)
 
 
 def _seconds(text: str) -> float:
@@ -73,5 +83,4 @@ def combine(subrenders: list[tuple[dict[str, np.ndarray], int]]) -> dict[str, np
                 out[f"{name}_var"] = spread / total
             else:
                 out[f"{name}_var"] = np.zeros_like(out[name])
-    out["coverage"] = (out["coverage"] > 0).astype(np.float64)
     return {name: np.ascontiguousarray(array, dtype=np.float32) for name, array in out.items()}
