@@ -201,8 +201,9 @@ DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 @app.command()
 @_user_errors
-def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s) with admc layer names, or "
-                                                         "OIDN-style NAME.hdr.exr (+ NAME.alb.exr, NAME.nrm.exr).")],
+def denoise(inputs: Annotated[list[Path], typer.Argument(help="EXR(s): admc's, Blender's, pbrt-v4's or Mitsuba's "
+                                                         "layers, or OIDN-style NAME.hdr.exr (+ NAME.alb.exr, "
+                                                         "NAME.nrm.exr).")],
             output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
@@ -219,12 +220,25 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                                                "torch on a GPU) | torch | onnxruntime | openvino "
                                                                "(docs/engines.md). Default: the config's "
                                                                "eval.engine.")] = None,
+            layers: Annotated[Optional[list[str]], typer.Option(
+                "--layers", help="Where admc's layers are in a file it does not recognise: ROLE=LAYER or "
+                                 "ROLE=CH1,CH2,CH3 (repeatable; roles: colour, diffuse, specular, albedo, normal, "
+                                 "depth, diffuse_var, specular_var), or a .toml file of them.")] = None,
+            normal_space: Annotated[str, typer.Option(
+                help="The normals' frame: auto (known from the renderer, else detected) | camera | world (needs a "
+                     "camera matrix).")] = "auto",
+            world_to_camera: Annotated[Optional[str], typer.Option(
+                help="The camera for world-space normals: the renderer's world-to-camera matrix, 16 numbers row by "
+                     "row (docs/usage.md says how to print it in Blender and Mitsuba).")] = None,
             oidn_blend: Annotated[bool, typer.Option(help="Blend with OIDN's output at the shares fine-tuned weights "
                                                           "ship (train.oidn_blend); --no-oidn-blend: the networks' "
                                                           "output alone.")] = True,
             config: ConfigOpt = None, set_: SetOpt = None) -> None:
-    """Denoise your own EXR renders: the final image as R/G/B plus the denoised diffuse./specular. layers."""
+    """Denoise your own EXR renders (admc's, Blender's, pbrt-v4's, Mitsuba's, OIDN file sets): the final image
+    plus the denoised diffuse and specular layers."""
     from admc.pipeline.stages.denoise import DenoiseInputError, check_output_path, load_denoise_input, output_paths
+    from admc.pipeline.stages.denoise_formats import NORMAL_SPACES, LayerMap, LayerMapError
+    from admc.pipeline.stages.denoise_layers import NormalSpaceError
     from admc.stores.exr import ExrError
 
     if output is not None and len(inputs) > 1:
@@ -233,10 +247,13 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
         raise typer.BadParameter(f"--ensemble must be one of {', '.join(map(str, ENSEMBLES))}, got {ensemble}")
     if engine is not None and engine not in ENGINE_CHOICES:
         raise typer.BadParameter(f"--engine must be one of {', '.join(ENGINE_CHOICES)}, got {engine!r}")
+    if normal_space not in NORMAL_SPACES:
+        raise typer.BadParameter(f"--normal-space must be one of {', '.join(NORMAL_SPACES)}, got {normal_space!r}")
+    mapping = LayerMap.parse(layers, normal_space, world_to_camera)
     cfg, model, written, failed = _load(config, set_), None, [], []
     for path, target in zip(inputs, output_paths(inputs, output)):
         try:
-            source = load_denoise_input(path)
+            source = load_denoise_input(path, mapping)
             check_output_path(target, source)
             if model is None:  # after the first input checks out, so a bad one is named without loading torch
                 from admc.pipeline.weights import load_model
@@ -252,8 +269,8 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
                                         "it, use weights without that input (--set model.noise_input=false "
                                         "picks the shipped ones)")
             _denoise_one(model, path, source, target)
-        except (DenoiseInputError, ExrError, OSError) as exc:  # this input's or its folder's fault: the others
-            if len(inputs) == 1 or _input_failure(exc) is None:  # still get denoised
+        except (DenoiseInputError, ExrError, LayerMapError, NormalSpaceError, OSError) as exc:  # this input's fault:
+            if len(inputs) == 1 or _input_failure(exc) is None:  # the others still get denoised
                 raise
             failed.append((path, _input_failure(exc)))
             continue

@@ -41,6 +41,7 @@ class CorpusConfig:
     held_out_families: tuple[str, ...]
     xml_dirs: tuple[str, ...]
     xml_resolution: str
+    blend_dirs: tuple[str, ...]
 
     def check(self) -> None:
         require(self.n_scenes >= 0, "n_scenes", f"must be >= 0, got {self.n_scenes}")
@@ -71,6 +72,9 @@ class RenderConfig:
     max_depth: int
     seed: int
     max_spp_per_pass: int
+    blender: str
+    cycles_subrenders: int
+    blender_threads: int
 
     def check(self) -> None:
         w, h = self.resolution
@@ -83,6 +87,8 @@ class RenderConfig:
                 f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
         require(1 <= self.max_depth <= 64, "max_depth", f"must be in 1..64, got {self.max_depth}")
         require(self.max_spp_per_pass >= 1, "max_spp_per_pass", "must be >= 1")
+        require(1 <= self.cycles_subrenders <= 64, "cycles_subrenders", f"must be in 1..64, got {self.cycles_subrenders}")
+        require(self.blender_threads >= 0, "blender_threads", f"must be >= 0, got {self.blender_threads}")
 
 
 @dataclass(frozen=True)

@@ -90,7 +90,7 @@ def _oidn_style_input(folder: Path) -> Path:
     from admc.stores.exr import write_exr
 
     rng = np.random.default_rng(0)
-    for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", -1.0)):
+    for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", 0.0)):  # normals facing the camera
         write_exr(folder / f"frame.{role}.exr", {"": rng.uniform(lo, 1.0, (8, 8, 3)).astype(np.float32)})
     return folder / "frame.hdr.exr"
 

@@ -254,7 +254,7 @@ def test_a_denoise_batch_killed_while_writing_leaves_no_partial_file(tmp_path):
     rng = np.random.default_rng(0)
     frames = []
     for i in range(3):
-        for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", -1.0)):
+        for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", 0.0)):  # normals facing the camera
             write_exr(tmp_path / f"f{i}.{role}.exr", {"": rng.uniform(lo, 1, (512, 512, 3)).astype(np.float32)})
         frames.append(tmp_path / f"f{i}.hdr.exr")
     process = subprocess.Popen([ADMC, "denoise", *map(str, frames), "--weights", str(SHIPPED)],

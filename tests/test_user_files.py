@@ -26,7 +26,7 @@ def buffers(seed=0):
         "diffuse": rng.gamma(0.5, 2.0, size=(H, W, 3)).astype(np.float32),
         "specular": rng.gamma(0.3, 1.0, size=(H, W, 3)).astype(np.float32),
         "albedo": rng.random((H, W, 3), dtype=np.float32),
-        "normal": rng.uniform(-1, 1, size=(H, W, 3)).astype(np.float32),
+        "normal": (np.abs(rng.uniform(-1, 1, size=(H, W, 3))) * [1, -1, 1]).astype(np.float32),  # facing the camera
         "depth": rng.uniform(1, 9, size=(H, W, 1)).astype(np.float32),
         "coverage": np.ones((H, W, 1), dtype=np.float32),
     }
@@ -115,7 +115,8 @@ def test_oidn_files_with_a_split_and_depth_run_both_branches(tmp_path, denoiser)
     loaded = load_denoise_input(tmp_path / "shot.exr")
     for name in ("diffuse", "specular", "albedo", "depth"):
         np.testing.assert_array_equal(loaded.layers[name], b[name])
-    assert loaded.notes == ["shot.exr: not read, the diffuse/specular split is used"]
+    assert loaded.notes[0] == "shot.exr: not read, the diffuse/specular split is used"
+    assert loaded.notes[1].startswith("shot.nrm.exr: normals (R, G, B) taken as camera space: 100% of the")
     result = denoiser(loaded.layers)
     assert result.branches == ("diffuse", "specular")
     out = tmp_path / "shot.denoised.exr"
@@ -178,7 +179,7 @@ def test_nothing_to_read_is_named(tmp_path):
 
 def test_plain_rgb_exr_without_feature_files_is_refused(tmp_path):
     write_plain(tmp_path / "beauty.exr", buffers()["diffuse"])
-    with pytest.raises(DenoiseInputError, match=r"beauty\.exr: lacks layer\(s\) diffuse, albedo, normal"):
+    with pytest.raises(DenoiseInputError, match=r"beauty\.exr: read as EXR, lacks albedo, normal needed .*--layers"):
         load_denoise_input(tmp_path / "beauty.exr")
 
 

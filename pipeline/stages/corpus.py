@@ -9,7 +9,7 @@ from admc.errors import StageError
 from admc.pipeline.config import Config
 from admc.pipeline.engine import runner, slurm
 from admc.pipeline.engine.cache import Task, TaskCache, TaskError
-from admc.pipeline.render import tasks as render
+from admc.pipeline.render import backends as render
 from admc.pipeline.render.scenes import NotAScene, SceneError, SceneSpec
 from admc.stores.atomic import read_json
 

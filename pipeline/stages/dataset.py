@@ -13,7 +13,7 @@ from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
 from admc.pipeline.engine import runner
 from admc.pipeline.engine.cache import Task, code_version
-from admc.pipeline.render import tasks as render
+from admc.pipeline.render import backends as render
 from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.pipeline.stages.corpus import StageResult, open_cache, read_sidecars, run_corpus, skipped_files
 from admc.stores import patches

@@ -1,6 +1,11 @@
 """Read the EXRs a user brings to `admc-pipe denoise` and write the denoised result.
 
-Two layouts are accepted:
+Three layouts are accepted:
+
+* one EXR as a renderer wrote it, recognised by its channel names (`denoise_formats`): Blender Cycles
+  multilayer files, pbrt-v4 gbuffer films, Mitsuba `aov` outputs, or any file with a `--layers` map;
+  its normals are brought into camera space or the file is refused (`denoise_layers`). A Blender file
+  gets its result back in Blender's layout (`VL.Combined.R/G/B/A`), which its compositor reads;
 
 * one multi-layer EXR with admc's layer names: `diffuse.R/G/B`, `albedo.R/G/B`, `normal.X/Y/Z`,
   optional `specular.R/G/B`, `depth.Z`, `coverage.A`, `diffuse_var.R/G/B`, `specular_var.R/G/B` (what
@@ -29,6 +34,10 @@ import numpy as np
 from admc.common.buffers import BEAUTY, DENOISER_LAYERS, MISSING_LAYERS, VARIANCE_LAYERS
 from admc.errors import AdmcError
 from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
+from admc.stores.exr_parts import channel_names, read_channels, write_channels
+
+from .denoise_formats import LayerMap, Recognised, recognise
+from .denoise_layers import build_layers, camera_normals, missing_roles
 
 if TYPE_CHECKING:  # reading and checking the input needs no torch, so a bad file is named in a second
     from admc.model.inference.denoiser import DenoiseResult
@@ -49,6 +58,9 @@ class DenoiseInput:
     layers: dict[str, np.ndarray]                 # diffuse, [specular], albedo, normal, [depth], [coverage]
     sources: dict[str, Path]                      # layer -> the file it was read from
     notes: list[str] = field(default_factory=list)
+    blender_layer: str | None = None              # a Blender file's view layer: the output keeps its layout
+    alpha: np.ndarray | None = None               # and its Combined alpha
+    attributes: dict = field(default_factory=dict)
 
     @property
     def paths(self) -> set[Path]:
@@ -60,14 +72,44 @@ class DenoiseInput:
         return nonfinite_report(self.layers)
 
 
-def load_denoise_input(path: Path) -> DenoiseInput:
-    """Read a multi-layer EXR, or the separate files of NAME (given as NAME.hdr.exr, NAME.exr or NAME)."""
-    path = Path(path)
+def load_denoise_input(path: Path, mapping: LayerMap | None = None) -> DenoiseInput:
+    """Read one EXR (admc's layers, a renderer's, or a `mapping`'s), or the separate files of NAME (given as
+    NAME.hdr.exr, NAME.exr or NAME)."""
+    path, mapping = Path(path), mapping or LayerMap()
     if path.is_file() and not path.name.endswith(SUFFIXES["colour"]):
-        layers = exr_layers(path)  # raises ExrError naming the file if it is no EXR or is corrupt
-        if "diffuse" in layers or not _sibling(_base(path), "albedo").exists():
-            return _load_multilayer(path, layers)
-    return _load_separate(_base(path), given=path)
+        header, names = channel_names(path)  # raises ExrError naming the file if it is no EXR or is corrupt
+        found = recognise(path, header, names, mapping)
+        if found is not None and found.format == "admc":
+            return _load_multilayer(path, exr_layers(path))
+        if found is not None and (found.format != "EXR" or not _sibling(_base(path), "albedo").exists()):
+            return _load_renderer(path, found, names)
+        if found is None and not _sibling(_base(path), "albedo").exists():
+            return _load_multilayer(path, exr_layers(path))
+    return _load_separate(_base(path), given=path, mapping=mapping)
+
+
+def _load_renderer(path: Path, found: Recognised, names: list[str]) -> DenoiseInput:
+    """A renderer's EXR: its layers as admc's, its normals in camera space (or a refusal naming the file)."""
+    missing = missing_roles(found)
+    if missing:
+        layers = sorted({name.rpartition(".")[0] or "R,G,B" for name in names})
+        hint = ("; in Blender switch on View Layer Properties > Passes > Data > Denoising Data (Cycles)"
+                if found.format.startswith("Blender") else "; name them with --layers ROLE=LAYER")
+        raise DenoiseInputError(f"{path}: read as {found.format}, lacks {', '.join(missing)} needed to denoise "
+                                f"(it holds {', '.join(layers)}){hint}")
+    wanted = {n for role in found.channels.values() for n in role}
+    wanted |= {n for role in found.light_passes.values() for n in role}
+    if found.blender_layer is not None:
+        wanted.add(f"{found.blender_layer}.Combined.A" if found.blender_layer else "Combined.A")
+    header, planes = read_channels(path, wanted)
+    layers, notes = build_layers(path, found, planes)
+    alpha_name = f"{found.blender_layer}.Combined.A" if found.blender_layer else "Combined.A"
+    result = DenoiseInput(layers, {name: path for name in layers}, notes, blender_layer=found.blender_layer,
+                          alpha=planes.get(alpha_name), attributes=found.attributes)
+    if "specular" not in layers and found.light_passes:
+        result.notes.append(f"{path.name}: no specular layer, only the diffuse network runs")
+    _note_missing_depth(result, path.name)
+    return result
 
 
 def _base(path: Path) -> Path:
@@ -99,7 +141,7 @@ def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
     return result
 
 
-def _load_separate(base: Path, given: Path) -> DenoiseInput:
+def _load_separate(base: Path, given: Path, mapping: LayerMap) -> DenoiseInput:
     files = {role: _sibling(base, role) for role in SUFFIXES}
     plain = base.with_name(base.name + ".exr")
     if plain.is_file() and (given == plain or not files["colour"].exists()):
@@ -124,6 +166,12 @@ def _load_separate(base: Path, given: Path) -> DenoiseInput:
         layers[name] = _read_plain(files[role], channels=1 if role == "depth" else 3)
         sources[name] = files[role]
     _check_sizes(layers, sources)
+    found = Recognised("OIDN files", {"normal": ("R", "G", "B")}, normal_space=mapping.normal_space,
+                       camera_frame=mapping.camera_frame)
+    if mapping.world_to_camera is not None:
+        found.world_to_camera, found.camera_source = np.asarray(mapping.world_to_camera, np.float64), "given"
+        found.normal_space = "world" if mapping.normal_space == "auto" else mapping.normal_space
+    layers["normal"], space_note = camera_normals(files["normal"], found, layers["normal"])
     if not split:
         notes = [f"{files['colour'].name}: one combined colour and no {base.name}.diffuse.exr/.specular.exr "
                  f"split, denoised as diffuse only"]
@@ -131,7 +179,7 @@ def _load_separate(base: Path, given: Path) -> DenoiseInput:
         notes = [f"{files['colour'].name}: not read, the diffuse/specular split is used"]
     else:
         notes = []
-    result = DenoiseInput(layers, sources, notes)
+    result = DenoiseInput(layers, sources, notes + [space_note])
     _note_missing_depth(result, base.name)
     return result
 
@@ -197,8 +245,31 @@ def write_denoised(path: Path, result: DenoiseResult, *, source: DenoiseInput, l
     `specular.*` parts; written atomically. Refuses to overwrite any file of `source`."""
     path = Path(path)
     check_output_path(path, source)
+    if source.blender_layer is not None:
+        _write_blender(path, result, source, layers)
+        return
     planes = {BEAUTY: result.image}
     if layers:
         planes.update({name: part for name, part in (("diffuse", result.diffuse), ("specular", result.specular))
                        if part is not None})
     write_exr(path, planes, precision="float", attributes={"admc_branches": ",".join(result.branches)})
+
+
+BLENDER_PASS_NAMES = {"diffuse": "admc Diffuse", "specular": "admc Specular"}
+"""The passes a Blender input's result carries beside Combined (Blender's compositor lists them by these names)."""
+
+
+def _write_blender(path: Path, result: DenoiseResult, source: DenoiseInput, layers: bool) -> None:
+    """Blender's multilayer layout: the denoised image as the view layer's Combined (RGBA, the input's
+    alpha), and the denoised branches as passes of that view layer."""
+    prefix = f"{source.blender_layer}." if source.blender_layer else ""
+    alpha = source.alpha if source.alpha is not None else np.ones(result.image.shape[:2], np.float32)
+    channels = {f"{prefix}Combined.{c}": result.image[:, :, i] for i, c in enumerate("RGB")}
+    channels[f"{prefix}Combined.A"] = alpha
+    if layers:
+        for name, part in (("diffuse", result.diffuse), ("specular", result.specular)):
+            if part is not None:
+                channels.update({f"{prefix}{BLENDER_PASS_NAMES[name]}.{c}": part[:, :, i] for i, c in enumerate("RGB")})
+    attributes = {"admc_branches": ",".join(result.branches), **source.attributes}
+    attributes.setdefault("BlenderMultiChannel", "Blender V2.55.1 and newer")
+    write_channels(path, channels, attributes=attributes)

@@ -18,7 +18,7 @@ from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenois
 from admc.pipeline.evaluation.inputs import find_test_images
 from admc.pipeline.evaluation.records import EvalResult, ScoredImage
 from admc.pipeline.evaluation.table1 import build_table1
-from admc.pipeline.render import tasks as render
+from admc.pipeline.render import backends as render
 from admc.pipeline.render import scenes
 from admc.pipeline.render.scenes import SceneSpec
 from admc.pipeline.stages.render import render_corpus

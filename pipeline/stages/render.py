@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from admc.pipeline.config import Config
-from admc.pipeline.render import tasks as render
+from admc.pipeline.render import backends as render
 from admc.pipeline.render.scenes import SceneError, SceneSpec
 from admc.pipeline.stages.corpus import StageResult, read_sidecars, run_corpus, skipped_files
 

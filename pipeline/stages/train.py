@@ -12,7 +12,7 @@ from admc.model.training.distributed import check_world
 from admc.model.training.trainer import TrainResult, check_fresh_start, train
 from admc.pipeline.config import Config
 from admc.pipeline.dataset import tile
-from admc.pipeline.render import tasks as render
+from admc.pipeline.render import backends as render
 from admc.pipeline.stages.dataset import build_dataset
 from admc.pipeline.weights import shipped_mismatch, shipped_weights, train_dir
 from admc.stores.checkpoints import CHECKPOINT_NAME, WEIGHTS_NAME, load_checkpoint, read_networks
