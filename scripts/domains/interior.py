@@ -13,7 +13,8 @@ from .scenexml import Scene, area, bitmap, box, bsdf, frame, sun_direction, two_
 
 STATES = ("day", "dusk", "night")
 HEIGHT = 2.7
-DAYLIGHT = 15.0  # sunsky scale: a room lit through one window is about as bright as under its lamps
+DAYLIGHT = 10.0  # sunsky scale: a room lit through one window is about as bright as under its lamps
+SUN_SHARE = 0.35  # the sun's scale relative to the sky's: a soft day, whose references converge in a few thousand spp
 
 
 class Room:
@@ -23,7 +24,7 @@ class Room:
         rng = np.random.default_rng([seed, 7001])
         self.seed, self.rng = seed, rng
         self.width, self.depth = rng.uniform(5.0, 6.0), rng.uniform(4.2, 5.0)
-        self.window = (rng.uniform(-0.6, 0.2), rng.uniform(1.4, 1.9), 0.8, 2.2)  # z centre, width, sill, top
+        self.window = (rng.uniform(-0.5, 0.1), rng.uniform(2.0, 2.5), 0.55, 2.35)  # z centre, width, sill, top
         tex = lambda name, image: assets.write_texture(out_dir / f"interior-{seed}-{name}.exr", image)
         self.textures = {
             "floor": tex("floor", assets.wood_planks(rng, np.array([0.55, 0.33, 0.16]) * rng.uniform(0.7, 1.2))),
@@ -62,7 +63,7 @@ class Room:
     # -- the room --------------------------------------------------------------------------------------
     def _shell(self, s: Scene) -> None:
         w, d, h = self.width, self.depth, HEIGHT
-        s.bsdf("floor", bsdf("roughplastic", texture=bitmap("", self.textures["floor"], (w / 2.0, d / 2.0)), alpha=0.12))
+        s.bsdf("floor", bsdf("roughplastic", texture=bitmap("", self.textures["floor"], (w / 2.0, d / 2.0)), alpha=0.2))
         s.bsdf("paint", bsdf("diffuse", self.paint))
         s.bsdf("ceiling", bsdf("diffuse", (0.78, 0.78, 0.76)))
         s.bsdf("wallpaper", bsdf("diffuse", texture=bitmap("", self.textures["wallpaper"], (d / 1.5, h / 1.5))))
@@ -168,21 +169,21 @@ class Room:
         w, d = self.width, self.depth
         if state != "night":
             azimuth, elevation = self.sun[index % len(self.sun)]
-            s.sunsky(sun_direction(azimuth, elevation), turbidity=3.0, sun_scale=DAYLIGHT if state == "day" else 0.0,
+            s.sunsky(sun_direction(azimuth, elevation), turbidity=3.0, sun_scale=DAYLIGHT * SUN_SHARE if state == "day" else 0.0,
                      sky_scale=DAYLIGHT if state == "day" else DAYLIGHT / 3)
         on = state != "day"
         s.bsdf("emitter-body", bsdf("diffuse", (0.0, 0.0, 0.0)))
         for x in (-w / 4, w / 4):
             for z in (-d / 4, d / 4):
-                s.shape("disk", "emitter-body", frame((x, HEIGHT - 0.001, z), (0, -1, 0), (0, 0, 1), 0.07, 0.07),
-                        emitter=area(warm_white(0.5) * 60.0) if on else None)
+                s.shape("disk", "emitter-body", frame((x, HEIGHT - 0.001, z), (0, -1, 0), (0, 0, 1), 0.15, 0.15),
+                        emitter=area(warm_white(0.5) * 13.0) if on else None)  # broad panels: few fireflies
         lx, lz = -w / 2 + 0.4, -d / 2 + 0.4
         s.shape("cylinder", "chrome", p0=(lx, 0, lz), p1=(lx, 1.45, lz), radius=0.015)
         s.shape("disk", "chrome", frame((lx, 0.01, lz), (0, 1, 0), (0, 0, -1), 0.16, 0.16))
         s.bsdf("shade", two_sided(bsdf("diffuse", (0.85, 0.8, 0.68))))
         s.shape("cylinder", "shade", p0=(lx, 1.35, lz), p1=(lx, 1.65, lz), radius=0.2)
-        s.shape("sphere", "emitter-body", center=(lx, 1.5, lz), radius=0.05,
-                emitter=area(warm_white(1.0) * 40.0) if state == "night" else None)
+        s.shape("sphere", "emitter-body", center=(lx, 1.5, lz), radius=0.08,
+                emitter=area(warm_white(1.0) * 16.0) if state == "night" else None)
         self.obstacles.append((lx - 0.25, lx + 0.25, lz - 0.25, lz + 0.25, 1.7))
 
     # -- camera ----------------------------------------------------------------------------------------
