@@ -65,7 +65,7 @@ def best_blend(output: Tensor, val: dict[str, Tensor], branch: str) -> tuple[flo
     oidn = to_linear(val["oidn"], val["features"], branch)
     means = torch.stack([relmse_torch(w * output + (1 - w) * oidn, ref).mean() for w in BLEND_SHARES.double()])
     best = int(torch.argmin(means))
-    return float(BLEND_SHARES[best]), float(means[best])
+    return round(float(BLEND_SHARES[best]), 2), float(means[best])
 
 
 def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
