@@ -66,8 +66,8 @@ class ExportedAdmc:
         if not manifest.is_file():
             raise ValueError(f"{folder}: holds no admc.json (write the folder with `admc-pipe export`)")
         self.spec = json.loads(manifest.read_text())
-        if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 2:
-            raise ValueError(f"{manifest}: not an admc-onnx export of version 2 (export it again with this admc)")
+        if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 3:
+            raise ValueError(f"{manifest}: not an admc-onnx export of version 3 (export it again with this admc)")
         self.sessions = {branch: onnxruntime.InferenceSession(str(Path(folder) / graph),
                                                               providers=["CPUExecutionProvider"])
                          for branch, graph in self.spec["graphs"].items()}
@@ -98,7 +98,7 @@ class ExportedAdmc:
                     raise ValueError(f"the input lacks {spec['variance']['layers'][b]}, which this export reads")
                 inputs[b]["noise"] = self.noise_map(variance[b] * np.float32(gain) ** 2, exposed[b], scale[b])
         if spec["base"] != "noisy":
-            for b, base in self.oidn_bases(exposed, clean).items():
+            for b, base in self.oidn_bases(exposed, clean, spec["base_quality"]).items():
                 inputs[b]["base"] = np.log1p(np.clip(base, 0.0, transform["radiance_max"]) / scale[b])
         # 3. the graphs, tiled; clamp, environment pixels, inverse (tile, output)
         environment = clean["coverage"] == 0
@@ -110,6 +110,13 @@ class ExportedAdmc:
             out[b] = (np.expm1(log) * scale[b] / np.float32(gain)).astype(np.float32)
         if "specular" in clean and "specular" not in out:
             out["specular"] = clean["specular"]  # no specular graph: the input passes through
+        # 3b. blended with OIDN's output where the weights ship shares (oidn_blend)
+        blend = spec.get("oidn_blend")
+        if blend:
+            oidn = self.oidn_bases({b: clean[b] for b in branches}, clean, blend["quality"])
+            for b, share in blend["shares"].items():
+                if b in branches:
+                    out[b] = (np.float32(share) * out[b] + np.float32(1 - share) * oidn[b]).astype(np.float32)
         # 4. back toward the input where it is resolved (keep_resolved)
         before = out["diffuse"] + out.get("specular", 0.0)
         for b in branches:
@@ -145,14 +152,14 @@ class ExportedAdmc:
         std = np.sqrt(variance.astype(np.float64)) / (np.clip(radiance, 0.0, None).astype(np.float64) + scale)
         return (np.log1p(std.mean(axis=-1, keepdims=True) / unit) / np.log1p(1.0 / unit)).astype(np.float32)
 
-    def oidn_bases(self, exposed: dict[str, np.ndarray], clean: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """OIDN on each branch (diffuse with albedo and normal, specular alone) at the export's base quality."""
+    def oidn_bases(self, images: dict[str, np.ndarray], clean: dict[str, np.ndarray],
+                   quality: dict[str, str]) -> dict[str, np.ndarray]:
+        """OIDN on each branch (diffuse with albedo and normal, specular alone) at each branch's quality."""
         import pyoidn
 
-        quality = self.spec["base_quality"]
         guides = {"diffuse": (clean["albedo"], clean["normal"]), "specular": (None, None)}
         return {b: np.nan_to_num(pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]),
-                                 nan=0.0, posinf=0.0, neginf=0.0) for b, image in exposed.items()}
+                                 nan=0.0, posinf=0.0, neginf=0.0).clip(0.0, None) for b, image in images.items()}
 
     def run_tiled(self, branch: str, inputs: dict[str, np.ndarray], tile: int) -> np.ndarray:
         """The branch's graph over cores of at most `tile` pixels, each run with `halo` pixels of image around

@@ -3,6 +3,7 @@
 with environment pixels and resolved regions, dim, with broken pixels, without depth and coverage, for
 admc, admc+oidn and noise-input weights. A step admc.json left out or described wrongly shows here."""
 import ast
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -151,6 +152,19 @@ def test_the_example_feeds_the_noise_map_as_admc_does(tmp_path, render, exported
 
     weights = noise_input_weights(tmp_path / "noise.pt")
     compare(tmp_path, exported(weights), weights, dim(render))
+
+
+def test_the_example_blends_with_oidn_as_admc_does(tmp_path, render, exported):
+    """Weights that ship an OIDN blend (train.oidn_blend): admc.json carries the shares and the example blends
+    each branch with OIDN's output as `admc-pipe denoise` does."""
+    from admc.stores.checkpoints import OIDN_BLEND, export_weights, load_weights
+
+    shipped = load_weights(WEIGHTS_DIR / "admc-small-pretrained.pt")
+    weights = tmp_path / "blended.pt"
+    export_weights(weights, shipped["branches"], {**shipped["metadata"], OIDN_BLEND: {"diffuse": 0.4, "specular": 0.7}})
+    folder = exported(weights)
+    assert json.loads((folder / "admc.json").read_text())["oidn_blend"]["shares"] == {"diffuse": 0.4, "specular": 0.7}
+    compare(tmp_path, folder, weights, render)
 
 
 def test_the_example_imports_nothing_of_admc():

@@ -30,8 +30,9 @@ OPSET = 17
 """ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""
 MANIFEST_NAME = "admc.json"
 FORMAT = "admc-onnx"
-FORMAT_VERSION = 2
-"""2 added `missing`, `variance`, `exposure` and `keep_resolved`: what `admc-pipe denoise` does around the graphs."""
+FORMAT_VERSION = 3
+"""2 added `missing`, `variance`, `exposure` and `keep_resolved`: what `admc-pipe denoise` does around the graphs;
+3 added `oidn_blend` (present where the weights ship one: train.oidn_blend)."""
 
 
 INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "base": 3}
@@ -82,7 +83,7 @@ def generator_graph(generator: Generator) -> bytes:
 
 
 def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float],
-                    missing: dict[str, float]) -> dict:
+                    missing: dict[str, float], oidn_blend: dict[str, float] | None = None) -> dict:
     """What a renderer must run around the graphs, JSON-ready (see docs/engines.md); `missing` is the constant
     a layer the input lacks is filled with (depth, coverage). examples/onnx_denoise.py follows it and
     nothing else, and tests/test_export_consumer.py checks that it gives what `admc-pipe denoise` gives."""
@@ -133,6 +134,14 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
                     "n = max(0, min(round(log2(trained_brightness / level)), floor(log2(radiance_max / peak)))), "
                     "peak = the largest value of diffuse + specular (if > 0)",
         },
+        **({"oidn_blend": {
+            "shares": dict(oidn_blend),
+            "quality": BASE_QUALITIES["oidn"],
+            "rule": "after the inverse (and / k), before keep_resolved, per branch with a share: out = share out + "
+                    "(1 - share) OIDN(clean branch) at that branch's quality, diffuse with the sanitised albedo and "
+                    "normal as guides, specular alone, both at the input's own exposure (hdr), negatives and "
+                    "non-finite values set to 0",
+        }} if oidn_blend else {}),
         "keep_resolved": {
             "radius": resolved.RADIUS,
             "margin": resolved.MARGIN,

@@ -23,13 +23,14 @@ def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"{out_dir}: exists and is not a folder (export writes a folder of graphs)")
-    generators = load_denoiser(weights).generators  # checks the file: format, transforms, architecture
+    denoiser = load_denoiser(weights)  # checks the file: format, transforms, architecture
+    generators = denoiser.generators
     written = [out_dir / f"{branch}.onnx" for branch in generators]
     try:
         for path, generator in zip(written, generators.values()):
             with publishing(path) as tmp:
                 export_generator(generator, tmp)
-        manifest = export_manifest(generators, transform_spec(), LOG_MAX, MISSING_LAYERS)
+        manifest = export_manifest(generators, transform_spec(), LOG_MAX, MISSING_LAYERS, denoiser.oidn_blend)
         write_json(out_dir / MANIFEST_NAME, {**manifest, "weights": Path(weights).name})
     except OSError as exc:
         raise ExportError(f"{out_dir}: cannot write the export there ({exc.strerror or exc})") from None
