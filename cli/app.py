@@ -79,7 +79,7 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
 
 
 def _print_dataset(result, workdir: str) -> None:
-    from admc.pipeline.dataset.report import contact_sheet, contact_sheet_path
+    from admc.pipeline.tiler.report import contact_sheet, contact_sheet_path
     from admc.stores.patches import store_summary
 
     for note in result.notes:

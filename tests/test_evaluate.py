@@ -18,7 +18,7 @@ from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
                                                 noisy_color, optix_unavailable_reason, time_denoiser)
-from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.scoring import evaluate
 from admc.pipeline.evaluation.inputs import find_test_images, read_reference
 from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percent
 from admc.pipeline.render.tasks import view_space_normals

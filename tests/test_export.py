@@ -110,7 +110,7 @@ def test_weights_without_the_noise_input_export_as_before(tmp_path):
 def test_a_slim_generator_exports_and_equals_torch_in_onnx_runtime():
     """model.cfm_per_block = model.condition_layers = 1 (one CFM per block, one-conv condition nets) exports
     like the paper's layout; same tolerance (fewer convs on the chain, the same bound holds)."""
-    from admc.model.inference.export import generator_graph
+    from admc.model.inference.onnx_export import generator_graph
     from admc.model.nets.generator import Generator
     from admc.model.nets.settings import ModelSettings
 

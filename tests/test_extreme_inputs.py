@@ -20,7 +20,7 @@ from admc.model.nets.generator import Generator
 from admc.model.nets.settings import ModelSettings
 from admc.model.transforms import diffuse_forward, specular_forward, transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
-from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.scoring import evaluate
 from admc.pipeline.evaluation.records import TestImage
 from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.checkpoints import export_weights

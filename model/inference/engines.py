@@ -20,7 +20,7 @@ from admc.common.layout import ENGINE_CHOICES, ENGINES
 from admc.errors import AdmcError
 
 from ..precision import resolve_precision
-from .export import generator_graph
+from .onnx_export import generator_graph
 
 
 class EngineError(AdmcError, ValueError):
