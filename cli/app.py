@@ -237,8 +237,11 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             check_output_path(target, source)
             if model is None:  # after the first input checks out, so a bad one is named without loading torch
                 from admc.pipeline.weights import load_model
-                model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
-                                   engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
+                from admc.model.inference.options import DenoiserOptions
+
+                model = load_model(cfg, weights, DenoiserOptions(
+                    device=device, tile=tile, ensemble=ensemble, dark_pass=dark_pass,
+                    engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved))
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             missing = model.missing_layers(source.layers)
             if missing:

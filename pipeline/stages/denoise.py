@@ -31,7 +31,7 @@ from admc.errors import AdmcError
 from admc.stores.exr import exr_layers, nonfinite_report, read_exr, read_image, write_exr
 
 if TYPE_CHECKING:  # reading and checking the input needs no torch, so a bad file is named in a second
-    from admc.model.inference.denoiser import DenoiseResult
+    from admc.model.inference.result import DenoiseResult
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
             "specular": ".specular.exr", "depth": ".depth.exr"}

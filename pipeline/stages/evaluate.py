@@ -10,6 +10,7 @@ from pathlib import Path
 
 from admc.common.metrics import METRICS
 from admc.errors import AdmcError, StageError
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import Config
 from admc.pipeline.tiler import tile
 from admc.pipeline.evaluation import html, scoring
@@ -107,8 +108,9 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     models = []
     for name, path in named:
         for ensemble, dark_pass, suffix in settings:
-            model = load_model(cfg, path, device, name=name, ensemble=ensemble, dark_pass=dark_pass,
-                               engine=cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
+            model = load_model(cfg, path, DenoiserOptions(device=device, name=name, ensemble=ensemble,
+                                                          dark_pass=dark_pass, engine=cfg.eval.engine,
+                                                          keep_resolved=cfg.eval.keep_resolved))
             model.name += suffix
             models.append(model)
     return models
