@@ -206,8 +206,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="Multi-layer EXR(s
             output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
-            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; results are "
-                                                                    "the same). Default: 320 on a CPU (640 in "
+            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; in float32 "
+                                                                    "the result is the same at any size, in bf16 "
+                                                                    "within its rounding). Default: 320 on a CPU (640 in "
                                                                     "OpenVINO), 512 on a GPU, at least 8 "
                                                                     "halos.")] = None,
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
