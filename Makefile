@@ -38,8 +38,8 @@ eval: setup                 ## Table 1, error vs time and the HTML page for the 
 ood: setup                  ## Table 1 on the out-of-family set (family 'ood', held out of training; docs/corpus.md)
 	$(ADMC) eval --set eval.split=ood --set eval.out_dir=eval-ood $(CFGARG) $(ARGS)
 
-test: setup                 ## the test suite (real renders, tiny sizes), each file in a pytest process of its own
-	$(PY) tests/run_per_file.py $(ARGS)
+test: setup                 ## the test suite (real renders, tiny sizes), in one pytest process
+	$(PY) -m pytest -q --durations=15 $(ARGS)
 
 bench: setup                ## print measured speed and size figures (each script: --help)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

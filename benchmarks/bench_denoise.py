@@ -39,6 +39,7 @@ import torch
 
 from admc.common.layout import ENGINES
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.engines import default_precision, resolve_engine
 from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.backbones import build_generator
@@ -93,9 +94,9 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     height, width = layers["diffuse"].shape[:2]
     tile = max(height, width) if args.tile == 0 else args.tile
     # a copy of the networks per denoiser: it moves them to its memory layout in place
-    denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), device=args.device,
+    denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), DenoiserOptions(device=args.device,
                                                tile=tile, dtype=PRECISIONS[p], compile=args.compile and e == "torch",
-                                               engine=e, keep_resolved=DEFAULTS.eval.keep_resolved)
+                                               engine=e, keep_resolved=DEFAULTS.eval.keep_resolved))
                  for e in args.engines for p in args.precisions if runs_here(e, p, args.device)}
     for precision, denoiser in denoisers.items():
         first = denoiser(layers).seconds

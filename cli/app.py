@@ -79,7 +79,7 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
 
 
 def _print_dataset(result, workdir: str) -> None:
-    from admc.pipeline.dataset.report import contact_sheet, contact_sheet_path
+    from admc.pipeline.tiler.report import contact_sheet, contact_sheet_path
     from admc.stores.patches import store_summary
 
     for note in result.notes:
@@ -207,8 +207,9 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="EXR(s): admc's, B
             output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
                                                            "default: INPUT.denoised.exr beside it).")] = None,
             weights: WeightsOpt = None, device: DeviceOpt = "auto",
-            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; results are "
-                                                                    "the same). Default: 320 on a CPU (640 in "
+            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; in float32 "
+                                                                    "the result is the same at any size, in bf16 "
+                                                                    "within its rounding). Default: 320 on a CPU (640 in "
                                                                     "OpenVINO), 512 on a GPU, at least 8 "
                                                                     "halos.")] = None,
             ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
@@ -257,9 +258,11 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="EXR(s): admc's, B
             check_output_path(target, source)
             if model is None:  # after the first input checks out, so a bad one is named without loading torch
                 from admc.pipeline.weights import load_model
-                model = load_model(cfg, weights, device, tile, ensemble=ensemble, dark_pass=dark_pass,
-                                   engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved,
-                                   oidn_blend=oidn_blend)
+                from admc.model.inference.options import DenoiserOptions
+
+                model = load_model(cfg, weights, DenoiserOptions(
+                    device=device, tile=tile, ensemble=ensemble, dark_pass=dark_pass,
+                    engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved), oidn_blend=oidn_blend)
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             missing = model.missing_layers(source.layers)
             if missing:

@@ -25,6 +25,7 @@ import torch
 
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.evaluation.inputs import by_scene, find_test_images, read_reference
@@ -57,7 +58,7 @@ def main() -> None:
     except EvalError as exc:
         parser.error(str(exc))
     torch.set_num_threads(args.threads)
-    admc = load_denoiser(args.weights, ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass)
+    admc = load_denoiser(args.weights, DenoiserOptions(ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass))
     oidn = OidnDenoiser(quality=table1.oidn_quality)
     scores = defaultdict(list)  # (family, spp) -> per image: [relMSE per method, 1-SSIM per method]
     for scene_id, group in by_scene(images).items():

@@ -21,6 +21,7 @@ import numpy as np
 from admc.common import oidn
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.denoiser import load_denoiser, sanitize_layers
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.evaluation.inputs import find_test_images, read_reference
 from admc.stores.exr import read_exr
@@ -36,9 +37,9 @@ def main() -> None:
     parser.add_argument("--weights", type=Path, default=Path("weights"), help="the folder of the shipped weights")
     args = parser.parse_args()
     settings = {"engine": "auto", "keep_resolved": True}
-    admc = load_denoiser(args.weights / "admc-small-pretrained.pt", **settings)
-    refiner = load_denoiser(args.weights / "admc-small-refiner.pt", **settings)
-    refiner_fast = load_denoiser(args.weights / "admc-small-refiner-fast.pt", **settings)
+    admc = load_denoiser(args.weights / "admc-small-pretrained.pt", DenoiserOptions(**settings))
+    refiner = load_denoiser(args.weights / "admc-small-refiner.pt", DenoiserOptions(**settings))
+    refiner_fast = load_denoiser(args.weights / "admc-small-refiner-fast.pt", DenoiserOptions(**settings))
     baseline = OidnDenoiser("high")
     scores = defaultdict(lambda: defaultdict(list))
     for test in find_test_images(args.renders):

@@ -18,6 +18,7 @@ import torch
 
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import OidnDenoiser
 from admc.pipeline.render.integrator import render_buffers
@@ -84,8 +85,8 @@ def main() -> None:
     reference = render_buffers(scene, args.reference_spp, seed=1000)
     ref = reference["diffuse"] + reference["specular"]
     oidn = OidnDenoiser(quality=table1.oidn_quality)
-    learned = {name: load_denoiser(WEIGHTS_DIR / f"admc-small-{file}.pt", ensemble=table1.ensemble,
-                                   dark_pass=table1.dark_pass)
+    learned = {name: load_denoiser(WEIGHTS_DIR / f"admc-small-{file}.pt", DenoiserOptions(ensemble=table1.ensemble,
+                                   dark_pass=table1.dark_pass))
                for name, file in (("admc", "pretrained"), ("admc+oidn", "refiner"))}
     print(f"{args.size}x{args.size}, reference {args.reference_spp} spp; relMSE (whole image, touched pixels), 1-SSIM")
     for spp in args.spp:

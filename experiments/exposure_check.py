@@ -20,6 +20,7 @@ import torch
 
 from admc.common.metrics import relmse
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.exposure import brightness
 from admc.pipeline.evaluation.baselines import noisy_color
 from admc.pipeline.evaluation.inputs import read_reference
@@ -43,7 +44,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    plain = load_denoiser(args.weights, normalize_exposure=False)
+    plain = load_denoiser(args.weights, DenoiserOptions(normalize_exposure=False))
     normed = load_denoiser(args.weights)
     results: dict[tuple[int, float], list[tuple[float, float]]] = {}
     levels: dict[int, list[float]] = {}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from admc.common.diff import differing_keys
 from admc.common.layout import BASE_QUALITIES
 from admc.errors import StageError
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.nets.settings import ModelSettings
 from admc.model.precision import resolve_device
 from admc.pipeline.config import Config
@@ -77,14 +79,11 @@ def default_weights(cfg: Config) -> Path:
     return shipped
 
 
-def load_model(cfg: Config, weights: Path | None, device: str = "auto", tile_size: int | None = None,
-               name: str | None = None, ensemble: int = 1, dark_pass: bool = False,
-               engine: str = "torch", keep_resolved: bool = False, oidn_blend: bool = True) -> FullImageDenoiser:
-    """The trained denoiser from `weights` (default: `default_weights`) on `device` (auto | cpu | cuda),
-    averaging `ensemble` symmetries of each input (model/symmetry.py), with the dark regions from a
-    second, brighter pass if `dark_pass` (model/inference/exposure.py), its networks run by `engine` (model/inference/engines.py),
-    keeping the input's resolved detail if `keep_resolved` (model/inference/resolved.py), blended with OIDN
-    where the weights ship a blend and `oidn_blend` (train.oidn_blend)."""
-    return load_denoiser(weights or default_weights(cfg), device=resolve_device(device), tile=tile_size, name=name,
-                         ensemble=ensemble, dark_pass=dark_pass, engine=engine, keep_resolved=keep_resolved,
+def load_model(cfg: Config, weights: Path | None, options: DenoiserOptions = DenoiserOptions(device="auto"),
+               oidn_blend: bool = True) -> FullImageDenoiser:
+    """The trained denoiser from `weights` (default: `default_weights`), run as `options` say (its device may
+    also be "auto": a CUDA GPU where torch sees one, else the CPU): the engine, ensemble, dark pass and
+    keeping of resolved detail (model/inference/options.py), blended with OIDN where the weights ship a
+    blend and `oidn_blend` (train.oidn_blend)."""
+    return load_denoiser(weights or default_weights(cfg), replace(options, device=resolve_device(options.device)),
                          oidn_blend=oidn_blend)

@@ -15,7 +15,7 @@ from test_cli import ADMC
 
 from admc.pipeline.render.blender.locate import blender_command
 from admc.pipeline.render.blender.passes import combine, coverage
-from admc.pipeline.render.blender.tasks import subrender_plan
+from admc.pipeline.render.blender.cycles_tasks import subrender_plan
 from admc.stores.exr import read_exr
 
 REPO = Path(__file__).resolve().parents[1]

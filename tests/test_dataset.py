@@ -8,8 +8,8 @@ import pytest
 
 from admc.model import transforms as tf
 from admc.pipeline.config import load_config
-from admc.pipeline.dataset import tile
-from admc.pipeline.dataset.report import contact_sheet_path
+from admc.pipeline.tiler import tile
+from admc.pipeline.tiler.report import contact_sheet_path
 from admc.pipeline.stages.dataset import build_dataset
 from admc.stores import exr, patches
 

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from admc.common.metrics import relmse
-from admc.model.inference.denoiser import load_denoiser, sanitize_layers
+from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.input_layers import sanitize_layers
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.oidn_base import oidn_bases
 from admc.pipeline.render.integrator import render_buffers
 from admc.pipeline.weights import WEIGHTS_DIR
@@ -94,7 +96,7 @@ def test_a_uniform_sky_in_a_mirror_has_nothing_to_denoise_and_stays_environment(
 def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror, inference_dtype):
     layers, _ = mirror
     noisy = layers["diffuse"] + layers["specular"]
-    out = load_denoiser(WEIGHTS_DIR / "admc-small-pretrained.pt", dtype=inference_dtype)(layers).image
+    out = load_denoiser(WEIGHTS_DIR / "admc-small-pretrained.pt", DenoiserOptions(dtype=inference_dtype))(layers).image
     sphere, sky = _on_sphere_and_off()
     changed = np.abs(out - noisy) > 1e-3 * noisy
     assert changed[sphere].mean() > 0.8
@@ -104,7 +106,7 @@ def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror, inferenc
 def test_the_refiner_refines_oidn_on_the_mirror_and_keeps_the_environment_exact(mirror, inference_dtype):
     layers, reference = mirror
     noisy = layers["diffuse"] + layers["specular"]
-    out = load_denoiser(WEIGHTS_DIR / "admc-small-refiner.pt", dtype=inference_dtype)(layers).image
+    out = load_denoiser(WEIGHTS_DIR / "admc-small-refiner.pt", DenoiserOptions(dtype=inference_dtype))(layers).image
     clean, _ = sanitize_layers(layers)
     bases = oidn_bases({name: clean[name] for name in ("diffuse", "specular", "albedo", "normal")}, "oidn")  # its base
     base = bases["diffuse"] + bases["specular"]

@@ -7,6 +7,7 @@ from test_export import FLOAT32_LOG_TOLERANCE
 from test_inference import render_layers
 
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.engines import OPENVINO_SIZES, OPENVINO_STREAMS, EngineError, OnnxGenerator, run_together
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
@@ -37,8 +38,8 @@ def dark_layers():
 def test_float32_engines_give_the_torch_result(engine, tile):
     layers = dark_layers()
     options = dict(tile=tile, dtype=torch.float32, dark_pass=True, ensemble=2)
-    reference = load_denoiser(SHIPPED, **options)(layers)
-    denoiser = load_denoiser(SHIPPED, engine=engine, **options)
+    reference = load_denoiser(SHIPPED, DenoiserOptions(**options))(layers)
+    denoiser = load_denoiser(SHIPPED, DenoiserOptions(engine=engine, **options))
     assert isinstance(denoiser.generators["diffuse"], OnnxGenerator)
     assert f"{engine} float32" in denoiser.device  # said next to its timings in the tables
     result = denoiser(layers)
@@ -50,14 +51,14 @@ def test_float32_engines_give_the_torch_result(engine, tile):
 def test_openvino_in_the_precision_it_picks_gives_the_torch_result():
     """bf16 where the CPU computes it (AVX512-BF16 or AMX), float32 elsewhere; tiled."""
     layers = render_layers(48, 64, seed=4)
-    exact = log_branches(load_denoiser(SHIPPED, tile=20, dtype=torch.float32)(layers), layers)
-    denoiser = load_denoiser(SHIPPED, tile=20, engine="openvino")
+    exact = log_branches(load_denoiser(SHIPPED, DenoiserOptions(tile=20, dtype=torch.float32))(layers), layers)
+    denoiser = load_denoiser(SHIPPED, DenoiserOptions(tile=20, engine="openvino"))
     error = np.abs(log_branches(denoiser(layers), layers) - exact)
     if not cpu_has_fast_bf16():
         assert denoiser.dtype == torch.float32 and error.max() <= FLOAT32_LOG_TOLERANCE
         return
     assert denoiser.dtype == torch.bfloat16
-    torch_bf16 = np.abs(log_branches(load_denoiser(SHIPPED, tile=20, dtype=torch.bfloat16)(layers), layers) - exact)
+    torch_bf16 = np.abs(log_branches(load_denoiser(SHIPPED, DenoiserOptions(tile=20, dtype=torch.bfloat16))(layers), layers) - exact)
     assert error.mean() <= BF16_ERROR_RATIO * torch_bf16.mean(), (error.mean(), torch_bf16.mean())
 
 
@@ -68,11 +69,11 @@ def test_openvino_in_the_precision_it_picks_gives_the_torch_result():
 ])
 def test_what_an_engine_cannot_do_is_refused(engine, options, message):
     with pytest.raises(ValueError, match=message):
-        load_denoiser(SHIPPED, engine=engine, **options)
+        load_denoiser(SHIPPED, DenoiserOptions(engine=engine, **options))
 
 
 def test_auto_is_openvino_on_a_cpu():
-    denoiser = load_denoiser(SHIPPED, engine="auto")
+    denoiser = load_denoiser(SHIPPED, DenoiserOptions(engine="auto"))
     assert denoiser.engine == "openvino" and isinstance(denoiser.generators["specular"], OnnxGenerator)
 
 
@@ -87,8 +88,8 @@ def test_float32_engines_give_the_torch_result_for_noise_input_weights(engine, s
     weights = noise_input_weights(tmp_path / "noise.pt", shipped)
     layers = with_variance(dark_layers())
     options = dict(tile=20, dtype=torch.float32, dark_pass=True, ensemble=2)
-    reference = load_denoiser(weights, **options)(layers)
-    denoiser = load_denoiser(weights, engine=engine, **options)
+    reference = load_denoiser(weights, DenoiserOptions(**options))(layers)
+    denoiser = load_denoiser(weights, DenoiserOptions(engine=engine, **options))
     assert all(g.noise_input for g in denoiser.generators.values())
     result = denoiser(layers)
     assert result.dark_share > 0 and result.tiles == reference.tiles
@@ -97,7 +98,7 @@ def test_float32_engines_give_the_torch_result_for_noise_input_weights(engine, s
     # the map reaches the graph where torch reads it: other variances move torch's output beyond twice the
     # tolerance's worst case, and the engine's with it, to within the tolerance
     quieter = {**layers, "diffuse_var": layers["diffuse_var"] * 1e-6}
-    moved = log_branches(load_denoiser(weights, **options)(quieter), layers)
+    moved = log_branches(load_denoiser(weights, DenoiserOptions(**options))(quieter), layers)
     assert np.abs(moved - log_branches(reference, layers)).max() > 2 * FLOAT32_LOG_TOLERANCE
     assert np.abs(log_branches(denoiser(quieter), layers) - moved).max() <= FLOAT32_LOG_TOLERANCE
 
@@ -105,8 +106,8 @@ def test_float32_engines_give_the_torch_result_for_noise_input_weights(engine, s
 def test_openvino_compiles_for_each_size_it_sees_and_keeps_the_last_few():
     """Each size gets a graph compiled for it (faster than the graph of any size) with torch's result; the
     oldest beyond OPENVINO_SIZES is let go, and a size seen again is reused."""
-    exact = load_denoiser(SHIPPED, dtype=torch.float32).generators["diffuse"]
-    generator = load_denoiser(SHIPPED, engine="openvino", dtype=torch.float32).generators["diffuse"]
+    exact = load_denoiser(SHIPPED, DenoiserOptions(dtype=torch.float32)).generators["diffuse"]
+    generator = load_denoiser(SHIPPED, DenoiserOptions(engine="openvino", dtype=torch.float32)).generators["diffuse"]
     sizes = [(8 + i, 12 + 2 * i) for i in range(OPENVINO_SIZES + 1)]
     generator_rng = torch.Generator().manual_seed(5)
     for height, width in sizes + sizes[-1:]:
@@ -122,7 +123,7 @@ def test_openvino_compiles_for_each_size_it_sees_and_keeps_the_last_few():
 def test_the_dark_pass_compiles_nothing_for_its_crop():
     """The dark pass's crop is a size of its own per image: it runs in the graph of any size."""
     layers = dark_layers()
-    denoiser = load_denoiser(SHIPPED, engine="openvino", dark_pass=True)
+    denoiser = load_denoiser(SHIPPED, DenoiserOptions(engine="openvino", dark_pass=True))
     assert denoiser(layers).dark_share > 0
     assert all(g.compiled_sizes == [layers["diffuse"].shape[:2]] for g in denoiser.generators.values())
 
@@ -133,7 +134,7 @@ def openvino_with_threads(threads: int, **options):
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        return load_denoiser(SHIPPED, engine="openvino", dtype=torch.float32, **options)
+        return load_denoiser(SHIPPED, DenoiserOptions(engine="openvino", dtype=torch.float32, **options))
     finally:
         torch.set_num_threads(previous)
 
@@ -143,7 +144,7 @@ def test_openvino_runs_calls_together_with_the_torch_result(height, width, tile,
     """With two threads an image's tiles, and both branches of an image of one tile, run OPENVINO_STREAMS at
     a time, each on one thread: torch's result, and calls of one size share one compiled graph."""
     layers = render_layers(height, width, seed=6)
-    exact = log_branches(load_denoiser(SHIPPED, tile=tile, dtype=torch.float32)(layers), layers)
+    exact = log_branches(load_denoiser(SHIPPED, DenoiserOptions(tile=tile, dtype=torch.float32))(layers), layers)
     denoiser = openvino_with_threads(2, tile=tile)
     result = denoiser(layers)
     assert result.tiles == tiles
@@ -155,7 +156,7 @@ def test_openvino_calls_stopped_early_wait_for_their_requests():
     """A caller that stops taking run_together's outputs (an error while it writes a tile) leaves no request
     running on inputs that are then freed; the next calls give the right outputs. The first call is tiny
     and the second large (tens of ms), so the second is still running when the first comes back."""
-    exact = load_denoiser(SHIPPED, dtype=torch.float32).generators["diffuse"]
+    exact = load_denoiser(SHIPPED, DenoiserOptions(dtype=torch.float32)).generators["diffuse"]
     generator = openvino_with_threads(2).generators["diffuse"]
     rng = torch.Generator().manual_seed(7)
     sizes = [(8, 12), (192, 256), (8, 12)]

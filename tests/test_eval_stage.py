@@ -135,7 +135,7 @@ def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
 
 @pytest.mark.parametrize("ensemble,dark_pass,rows", [(1, "false", 2), (4, "true", 1)])
 def test_the_ensemble_and_dark_pass_row_has_its_own_name_and_settings(tmp_path, ensemble, dark_pass, rows):
-    from admc.pipeline.evaluation.evaluate import _check_denoisers
+    from admc.pipeline.evaluation.scoring import _check_denoisers
     from admc.pipeline.stages.evaluate import learned_denoisers
     from admc.pipeline.weights import WEIGHTS_DIR
     cfg = load_config(None, overrides(tmp_path) + [f"eval.ensemble={ensemble}", f"eval.dark_pass={dark_pass}",

@@ -18,7 +18,7 @@ from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
                                                 noisy_color, optix_unavailable_reason, time_denoiser)
-from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.scoring import evaluate
 from admc.pipeline.evaluation.inputs import find_test_images, read_reference
 from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percent
 from admc.pipeline.render.tasks import view_space_normals
@@ -457,9 +457,10 @@ def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_pa
     from conftest import noise_input_weights
 
     from admc.model.inference.denoiser import load_denoiser
+    from admc.model.inference.options import DenoiserOptions
 
     weights = noise_input_weights(tmp_path / "noise.pt")
-    denoiser = load_denoiser(weights, dtype=None)
+    denoiser = load_denoiser(weights, DenoiserOptions(dtype=None))
     result = evaluate(find_test_images(renders), [NoisyInput(), denoiser], tmp_path / "out", progress=False,
                       repeats=1, warmup=0)  # the renders carry diffuse_var and specular_var
     assert all(math.isfinite(r.relmse) for r in result.records)

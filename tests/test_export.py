@@ -11,6 +11,7 @@ from test_user_errors_cli import refused
 
 from admc.common.layout import BASE_QUALITIES
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.stages.export import export_onnx
 from admc.pipeline.weights import WEIGHTS_DIR
 
@@ -38,7 +39,7 @@ def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weigh
     written = export_onnx(WEIGHTS_DIR / weights, tmp_path / "onnx")  # what `admc-pipe export` calls
     assert sorted(p.name for p in written) == ["admc.json", "diffuse.onnx", "specular.onnx"]
     manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
-    generators = load_denoiser(WEIGHTS_DIR / weights, dtype=torch.float32).generators
+    generators = load_denoiser(WEIGHTS_DIR / weights, DenoiserOptions(dtype=torch.float32)).generators
     assert manifest["base"] == base and set(manifest["graphs"]) == set(generators) == {"diffuse", "specular"}
     assert manifest.get("base_quality") == BASE_QUALITIES.get(base)  # what OIDN runs at per branch, for a refiner
     assert manifest["gate_radius"] == {b: g.gate_radius for b, g in generators.items()}
@@ -83,7 +84,7 @@ def test_noise_input_weights_export_the_noise_map_as_an_input_of_its_own(tmp_pat
     manifest = json.loads((tmp_path / "onnx" / "admc.json").read_text())
     assert manifest["noise_input"] is True and manifest["noise_std_unit"] == NOISE_STD_UNIT
     assert "noise" in manifest["inputs"] and len(manifest["inputs"]["features"]) == 7
-    generators = load_denoiser(weights, dtype=torch.float32).generators
+    generators = load_denoiser(weights, DenoiserOptions(dtype=torch.float32)).generators
     for branch, generator in generators.items():
         session = onnxruntime.InferenceSession(str(tmp_path / "onnx" / manifest["graphs"][branch]),
                                                providers=["CPUExecutionProvider"])
@@ -110,7 +111,7 @@ def test_weights_without_the_noise_input_export_as_before(tmp_path):
 def test_a_slim_generator_exports_and_equals_torch_in_onnx_runtime():
     """model.cfm_per_block = model.condition_layers = 1 (one CFM per block, one-conv condition nets) exports
     like the paper's layout; same tolerance (fewer convs on the chain, the same bound holds)."""
-    from admc.model.inference.export import generator_graph
+    from admc.model.inference.onnx_export import generator_graph
     from admc.model.nets.generator import Generator
     from admc.model.nets.settings import ModelSettings
 

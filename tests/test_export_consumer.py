@@ -13,7 +13,7 @@ import pytest
 from test_cli import run
 from test_export import FLOAT32_LOG_TOLERANCE
 
-from admc.model.inference.denoiser import sanitize_layers
+from admc.model.inference.input_layers import sanitize_layers
 from admc.model.inference.exposure import exposure_gain
 from admc.model.transforms import diffuse_forward, specular_forward
 from admc.pipeline.stages.export import export_onnx

@@ -7,13 +7,15 @@ from torch import nn
 
 from test_inference import log_tolerance, render_layers, strong_generator
 from test_unet import strong_unet
-from admc.model.inference.denoiser import FullImageDenoiser, dark_region
+from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.exposure import dark_region
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
 from admc.model.transforms import RADIANCE_MAX, diffuse_forward, specular_forward
 
 def denoiser(normalize: bool, dtype: torch.dtype, dark_pass: bool = True) -> FullImageDenoiser:
-    return FullImageDenoiser(strong_generator(1), strong_generator(2), dtype=dtype,
-                             normalize_exposure=normalize, dark_pass=dark_pass)
+    return FullImageDenoiser(strong_generator(1), strong_generator(2), DenoiserOptions(dtype=dtype,
+                             normalize_exposure=normalize, dark_pass=dark_pass))
 
 
 def scaled(layers: dict, factor: float) -> dict:
@@ -83,8 +85,8 @@ class LogOffset(nn.Module):
 
 def offset_denoiser(dark_pass: bool) -> FullImageDenoiser:
     """float32: an addition runs in float32 under autocast too (only convs and matmuls go to bf16)."""
-    return FullImageDenoiser(LogOffset(), LogOffset(), overlap=0, dtype=torch.float32, normalize_exposure=False,
-                             dark_pass=dark_pass)
+    return FullImageDenoiser(LogOffset(), LogOffset(), DenoiserOptions(overlap=0, dtype=torch.float32, normalize_exposure=False,
+                             dark_pass=dark_pass))
 
 
 def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
@@ -126,8 +128,8 @@ def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pas
         return strong_generator(seed, scale=0.7) if backbone == "residual" else strong_unet(seed)
 
     def make(dark_pass: bool) -> FullImageDenoiser:
-        return FullImageDenoiser(generator(1), generator(2), tile=16 if backbone == "residual" else 32,
-                                 dtype=inference_dtype, normalize_exposure=False, dark_pass=dark_pass)
+        return FullImageDenoiser(generator(1), generator(2), DenoiserOptions(tile=16 if backbone == "residual" else 32,
+                                 dtype=inference_dtype, normalize_exposure=False, dark_pass=dark_pass))
 
     twice, once = make(True)(layers), make(False)(layers)
     brighter = make(False)(scaled(layers, DARK_GAIN))  # the whole image at the second pass's exposure

@@ -15,12 +15,13 @@ from scipy.ndimage import maximum_filter
 
 from admc.common.metrics import one_minus_ssim
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.generator import Generator
 from admc.model.nets.settings import ModelSettings
 from admc.model.transforms import diffuse_forward, specular_forward, transform_spec
 from admc.pipeline.evaluation.baselines import NoisyInput, OidnDenoiser, noisy_color
-from admc.pipeline.evaluation.evaluate import evaluate
+from admc.pipeline.evaluation.scoring import evaluate
 from admc.pipeline.evaluation.records import TestImage
 from admc.pipeline.weights import WEIGHTS_DIR
 from admc.stores.checkpoints import export_weights
@@ -70,7 +71,7 @@ def model(tmp_path_factory, inference_dtype):
     branches = {b: {"generator": Generator(TINY).state_dict(),
                     "critic": torch.nn.Linear(1, 1).state_dict()} for b in ("diffuse", "specular")}
     export_weights(weights, branches, {"model": dataclasses.asdict(TINY), "transform": transform_spec()})
-    return load_denoiser(weights, tile=64, dtype=inference_dtype)
+    return load_denoiser(weights, DenoiserOptions(tile=64, dtype=inference_dtype))
 
 
 def test_model_denoises_every_extreme_case_to_finite_values(model):
@@ -177,7 +178,7 @@ def dark_renders(variant):
 
 @pytest.fixture
 def shipped(inference_dtype):
-    return load_denoiser(SHIPPED, dtype=inference_dtype)
+    return load_denoiser(SHIPPED, DenoiserOptions(dtype=inference_dtype))
 
 
 def _unlit(color: np.ndarray, radius: int) -> np.ndarray:
@@ -200,7 +201,7 @@ def test_output_is_zero_where_nothing_is_lit_within_the_receptive_radius(shipped
     also without a coverage layer (a user's EXR), so the gate is what keeps it black there."""
     torch.manual_seed(0)
     paper_like = dataclasses.replace(TINY, input_skip=input_skip)
-    models = [FullImageDenoiser(Generator(paper_like), Generator(paper_like), dtype=shipped.dtype)]
+    models = [FullImageDenoiser(Generator(paper_like), Generator(paper_like), DenoiserOptions(dtype=shipped.dtype))]
     if input_skip:
         models.append(shipped)
     for name, (noisy, _) in dark_renders.items():

@@ -6,6 +6,7 @@ from torch import nn
 
 from admc.common.buffers import MISSING_DEPTH
 from admc.model.inference.denoiser import LOG_MAX, FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.tiling import CPU_TILE, GPU_TILE, OPENVINO_TILE, axis_windows, default_tile, receptive_radius, run_tiled
 from admc.model.nets.generator import Generator, light_within, scaled_kaiming_
 from admc.model.nets.settings import ModelSettings
@@ -165,15 +166,15 @@ def test_default_tile_is_by_device_and_at_least_eight_halos():
     assert default_tile(torch.device("cpu"), 116, "openvino") == 928
     assert default_tile(torch.device("cpu"), 12, "onnxruntime") == CPU_TILE
     assert FullImageDenoiser(Generator(TINY), None).tile == CPU_TILE
-    assert FullImageDenoiser(Generator(TINY), None, tile=48).tile == 48
+    assert FullImageDenoiser(Generator(TINY), None, DenoiserOptions(tile=48)).tile == 48
 
 
 def test_denoiser_tiled_equals_untiled_on_a_70x90_image(inference_dtype):
     # weights at 0.7x Kaiming keep the log outputs O(1), clear of the clamp that would hide errors
     diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
     layers = render_layers(70, 90)
-    tiled = FullImageDenoiser(diffuse, specular, tile=32, dtype=inference_dtype)(layers)
-    untiled = FullImageDenoiser(diffuse, specular, tile=512, dtype=inference_dtype)(layers)
+    tiled = FullImageDenoiser(diffuse, specular, DenoiserOptions(tile=32, dtype=inference_dtype))(layers)
+    untiled = FullImageDenoiser(diffuse, specular, DenoiserOptions(tile=512, dtype=inference_dtype))(layers)
     assert tiled.tiles == 9 and untiled.tiles == 1
     assert tiled.branches == ("diffuse", "specular")
     albedo = layers["albedo"]
@@ -205,7 +206,7 @@ def test_environment_pixels_keep_their_input(inference_dtype):
     layers["diffuse"][:, :4] = 0.7   # a lit environment: kept, not hidden
     layers["diffuse"][:, 4:8] = 0.0  # a black one: stays black
     result = FullImageDenoiser(strong_generator(5, scale=0.7), strong_generator(6, scale=0.7),
-                               dtype=inference_dtype)(layers)
+                               DenoiserOptions(dtype=inference_dtype))(layers)
     # kept pixels never pass through the networks, in either precision: the log value is stored in float32 (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1),
     # under 6 for every log value here (d < 5.5), so the radiance comes back within 4e-7
     np.testing.assert_allclose(result.diffuse[:, :8], layers["diffuse"][:, :8], rtol=1e-6, atol=0)
@@ -216,7 +217,7 @@ def test_environment_pixels_keep_their_input(inference_dtype):
 def test_overlap_below_the_receptive_radius_is_refused():
     g = strong_generator(0)
     with pytest.raises(ValueError, match="receptive field radius 8"):
-        FullImageDenoiser(g, None, overlap=7)
+        FullImageDenoiser(g, None, DenoiserOptions(overlap=7))
     with pytest.raises(ValueError, match="overlap must be given"):
         FullImageDenoiser(PassThrough(), None)
 
@@ -224,7 +225,7 @@ def test_overlap_below_the_receptive_radius_is_refused():
 def test_pass_through_network_returns_the_input_radiance(inference_dtype):
     layers = render_layers(37, 23)
     layers["diffuse"][0, 0] = 5000.0  # bright, still within the FP16-safe range
-    result = FullImageDenoiser(PassThrough(), PassThrough(), tile=16, overlap=0, dtype=inference_dtype)(layers)
+    result = FullImageDenoiser(PassThrough(), PassThrough(), DenoiserOptions(tile=16, overlap=0, dtype=inference_dtype))(layers)
     # a copy is no conv: autocast leaves it in float32, and the log transform round trips in float32
     np.testing.assert_allclose(result.diffuse, layers["diffuse"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(result.specular, layers["specular"], rtol=1e-5, atol=1e-6)
@@ -234,7 +235,7 @@ def test_pass_through_network_returns_the_input_radiance(inference_dtype):
 
 def test_scene_without_specular_runs_only_the_diffuse_network():
     diffuse, specular = CallCounter(TINY), CallCounter(TINY)
-    denoiser = FullImageDenoiser(diffuse, specular, tile=16)
+    denoiser = FullImageDenoiser(diffuse, specular, DenoiserOptions(tile=16))
     result = denoiser(render_layers(20, 40, specular=False))
     assert specular.calls == 0 and diffuse.calls == 6  # 2 x 3 tiles
     assert result.branches == ("diffuse",) and result.specular is None
@@ -245,7 +246,7 @@ def test_scene_without_specular_runs_only_the_diffuse_network():
 
 def test_specular_without_a_specular_network_is_passed_through_and_said(inference_dtype):
     layers = render_layers(12, 12)
-    result = FullImageDenoiser(strong_generator(0), None, dtype=inference_dtype)(layers)
+    result = FullImageDenoiser(strong_generator(0), None, DenoiserOptions(dtype=inference_dtype))(layers)
     assert result.branches == ("diffuse",) and result.specular_passed_through
     np.testing.assert_array_equal(result.specular, layers["specular"])
     np.testing.assert_allclose(result.image, result.diffuse + layers["specular"], rtol=1e-6)
@@ -267,7 +268,7 @@ def hostile_layers(height, width):
 def test_outputs_are_finite_on_hostile_inputs_of_odd_sizes(size, inference_dtype):
     g_d, g_s = strong_generator(6), strong_generator(7)
     layers = hostile_layers(*size)
-    result = FullImageDenoiser(g_d, g_s, tile=48, dtype=inference_dtype)(layers)
+    result = FullImageDenoiser(g_d, g_s, DenoiserOptions(tile=48, dtype=inference_dtype))(layers)
     assert result.image.shape == (*size, 3)
     for part in (result.image, result.diffuse, result.specular):
         assert np.isfinite(part).all() and (part >= 0).all()
@@ -290,7 +291,7 @@ def test_outputs_are_finite_on_degenerate_scenes(case, inference_dtype):
     else:
         layers["coverage"][:] = 0.0
         layers["depth"][:] = 0.0
-    result = FullImageDenoiser(strong_generator(2), strong_generator(3), tile=16, dtype=inference_dtype)(layers)
+    result = FullImageDenoiser(strong_generator(2), strong_generator(3), DenoiserOptions(tile=16, dtype=inference_dtype))(layers)
     assert np.isfinite(result.image).all() and (result.image >= 0).all()
     assert result.sanitized == {}
 
@@ -326,8 +327,8 @@ def test_denoiser_follows_the_evaluation_interface():
 def test_bfloat16_autocast_stays_close_to_float32():
     layers = render_layers(20, 20, specular=False)
     generator = strong_generator(2, scale=0.7)
-    exact = FullImageDenoiser(generator, None, dtype=torch.float32)(layers)
-    low = FullImageDenoiser(generator, None, dtype=torch.bfloat16)(layers)
+    exact = FullImageDenoiser(generator, None, DenoiserOptions(dtype=torch.float32))(layers)
+    low = FullImageDenoiser(generator, None, DenoiserOptions(dtype=torch.bfloat16))(layers)
     log_exact = diffuse_forward(exact.diffuse, layers["albedo"])
     log_low = diffuse_forward(low.diffuse, layers["albedo"])
     error = np.abs(log_low - log_exact).max()
@@ -384,7 +385,7 @@ def test_noise_input_weights_read_each_branchs_variance_as_its_noise_map(normali
         layers = {k: v * (1e-3 if k in ("diffuse", "specular") else 1e-6 if k.endswith("_var") else 1)
                   for k, v in layers.items()}
     diffuse, specular = FeatureEcho(noise_input=True), FeatureEcho(noise_input=True)
-    denoiser = FullImageDenoiser(diffuse, specular, overlap=0, normalize_exposure=normalize_exposure)
+    denoiser = FullImageDenoiser(diffuse, specular, DenoiserOptions(overlap=0, normalize_exposure=normalize_exposure))
     gain = np.float32(denoiser(layers).exposure_gain)
     assert (gain > 1) == normalize_exposure
     (d,), (s,) = diffuse.seen, specular.seen
@@ -396,12 +397,12 @@ def test_noise_input_weights_read_each_branchs_variance_as_its_noise_map(normali
     np.testing.assert_array_equal(s[0, 7].numpy(), want_s[..., 0])
 
     plain = FeatureEcho(noise_input=False)
-    FullImageDenoiser(plain, None, overlap=0)(layers)
+    FullImageDenoiser(plain, None, DenoiserOptions(overlap=0))(layers)
     assert plain.seen[0].shape[1] == 7  # weights without the noise input never see it
 
 
 def test_noise_input_weights_name_the_variance_layers_an_input_lacks():
-    denoiser = FullImageDenoiser(FeatureEcho(True), FeatureEcho(True), overlap=0, source="w.pt")
+    denoiser = FullImageDenoiser(FeatureEcho(True), FeatureEcho(True), DenoiserOptions(overlap=0, source="w.pt"))
     layers = render_layers(8, 8)
     assert denoiser.missing_layers(layers) == ["diffuse_var", "specular_var"]
     assert denoiser.missing_layers({k: v for k, v in layers.items() if k != "specular"}) == ["diffuse_var"]
@@ -420,7 +421,7 @@ def test_weights_without_the_noise_input_ignore_variance_layers_bit_for_bit():
     variance layers (broken ones included) the input carries, and reports no repair of them."""
     layers = render_layers(24, 20)
     broken = {**with_variance(layers), "diffuse_var": np.full((3, 3, 3), np.nan, np.float32)}
-    denoiser = FullImageDenoiser(strong_generator(0), strong_generator(1), tile=16, dark_pass=True)
+    denoiser = FullImageDenoiser(strong_generator(0), strong_generator(1), DenoiserOptions(tile=16, dark_pass=True))
     a, b = denoiser(layers), denoiser(broken)
     np.testing.assert_array_equal(a.image, b.image)
     assert a.sanitized == b.sanitized == {}
@@ -447,8 +448,8 @@ def test_noise_input_weights_tile_and_run_the_dark_pass_and_ensemble_like_the_wh
     strong = noise_generator(0, 0.7), noise_generator(1, 0.7)
     near_identity = noise_generator(0, 0.1, input_skip=True), noise_generator(1, 0.1, input_skip=True)
     for generators, options in ((strong, {}), (strong, {"ensemble": 4}), (near_identity, {"dark_pass": True})):
-        whole = FullImageDenoiser(*generators, tile=64, dtype=inference_dtype, **options)(layers)
-        tiled = FullImageDenoiser(*generators, tile=16, dtype=inference_dtype, **options)(layers)
+        whole = FullImageDenoiser(*generators, DenoiserOptions(tile=64, dtype=inference_dtype, **options))(layers)
+        tiled = FullImageDenoiser(*generators, DenoiserOptions(tile=16, dtype=inference_dtype, **options))(layers)
         assert tiled.tiles > 1 == whole.tiles
         albedo = layers["albedo"]
         for a, b, branch in ((diffuse_forward(tiled.diffuse, albedo), diffuse_forward(whole.diffuse, albedo),
@@ -459,7 +460,7 @@ def test_noise_input_weights_tile_and_run_the_dark_pass_and_ensemble_like_the_wh
         assert whole.dark_share > 0 if options.get("dark_pass") else whole.dark_share == 0
     # the map matters: other variances, another output
     quieter = {**layers, "diffuse_var": layers["diffuse_var"] * 1e-4}
-    plain = FullImageDenoiser(*strong, tile=64, dtype=inference_dtype)
+    plain = FullImageDenoiser(*strong, DenoiserOptions(tile=64, dtype=inference_dtype))
     assert np.abs(plain(quieter).diffuse - plain(layers).diffuse).max() > 0
 
 
@@ -474,8 +475,8 @@ class NonFiniteAt(nn.Module):
 
 def test_non_finite_network_outputs_are_counted_and_set_to_zero():
     layers = render_layers(8, 10, seed=6)
-    result = FullImageDenoiser(NonFiniteAt(), NonFiniteAt(), overlap=0, dtype=torch.float32,
-                               normalize_exposure=False)(layers)
+    result = FullImageDenoiser(NonFiniteAt(), NonFiniteAt(), DenoiserOptions(overlap=0, dtype=torch.float32,
+                               normalize_exposure=False))(layers)
     assert result.nonfinite_outputs == 6 and np.isfinite(result.image).all()
     assert result.diffuse[1, 1, 0] == 0 and result.specular[2, 3, 1] == 0  # log 0 -> 0 radiance
     assert result.specular[4, 5, 2] == 0
@@ -489,15 +490,15 @@ def test_an_oidn_blend_mixes_each_branch_with_oidns_own_output_at_its_share():
     from admc.model.inference.oidn_base import oidn_bases
     layers = render_layers(40, 48, seed=5)
     diffuse, specular = strong_generator(1), strong_generator(2)
-    plain = FullImageDenoiser(diffuse, specular, dtype=torch.float32)(layers)
+    plain = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=torch.float32))(layers)
     shares = {"diffuse": 0.25, "specular": 0.6}
-    blended = FullImageDenoiser(diffuse, specular, dtype=torch.float32, oidn_blend=shares)(layers)
+    blended = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=torch.float32, oidn_blend=shares))(layers)
     oidn = oidn_bases(sanitize_layers(layers)[0], "oidn")
     for branch, share in shares.items():  # float32 arithmetic on values of order 1-10: a few ulps
         want = share * getattr(plain, branch) + (1 - share) * oidn[branch]
         np.testing.assert_allclose(getattr(blended, branch), want, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(blended.image, blended.diffuse + blended.specular, rtol=1e-6, atol=1e-6)
-    assert "blended with OIDN" in FullImageDenoiser(diffuse, specular, oidn_blend=shares).device
+    assert "blended with OIDN" in FullImageDenoiser(diffuse, specular, DenoiserOptions(oidn_blend=shares)).device
     refiner_settings = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, base="oidn")
     with pytest.raises(ValueError, match="refiner"):
-        FullImageDenoiser(Generator(refiner_settings), None, oidn_blend=shares)
+        FullImageDenoiser(Generator(refiner_settings), None, DenoiserOptions(oidn_blend=shares))

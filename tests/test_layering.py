@@ -3,6 +3,7 @@ admc/errors.py, and inside pipeline/ and model/ from the upper layers to the low
 source, imports inside functions included: a lazy import upward is still a layer upside down."""
 import ast
 import tomllib
+from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -13,7 +14,7 @@ LAYERS = [  # (module prefix, layer): the longest matching prefix decides; highe
     ("admc.model", 2), ("admc.model.nets", 3), ("admc.model.training", 4), ("admc.model.inference", 4),
     ("admc.pipeline", 5), ("admc.pipeline.scene_names", 5), ("admc.pipeline.config", 6),
     ("admc.pipeline.engine", 7), ("admc.pipeline.render", 8),
-    ("admc.pipeline.dataset", 9), ("admc.pipeline.evaluation", 9), ("admc.pipeline.weights", 9),
+    ("admc.pipeline.tiler", 9), ("admc.pipeline.evaluation", 9), ("admc.pipeline.weights", 9),
     ("admc.pipeline.stages", 10),
     ("admc.cli", 11),
 ]
@@ -64,3 +65,12 @@ def test_imports_go_down_the_layers():
             if (layer > own and prefix != own_prefix) or side_by_side:
                 upward.append(f"{module} ({own_prefix}) imports {name} ({prefix})")
     assert len(modules) > 100 and not upward, "\n".join(upward)
+
+
+def test_no_two_modules_share_a_name():
+    """A module's name says where it is: two `evaluate.py` (or `export.py`, `settings.py`) doing different jobs
+    in different folders make a reader open the wrong one. (A command's module in stages/ may share its name
+    with the package of its parts: stages/render.py runs render/.)"""
+    modules = [module for module, path in package_modules().items() if path.name not in ("__init__.py", "__main__.py")]
+    names = Counter(module.rsplit(".", 1)[1] for module in modules)
+    assert [name for name, count in names.items() if count > 1] == []

@@ -12,6 +12,7 @@ from admc.common.buffers import sanitize
 from admc.common.layout import BASE_QUALITIES
 from admc.model import transforms as tf
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.oidn_base import oidn_bases
 from admc.model.nets.backbones import build_generator
 from admc.model.nets.settings import ModelSettings
@@ -138,6 +139,7 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
     result = train(store, tmp_path / "run", settings, model, progress=False)
     assert result.validation["diffuse"]["base_relmse"] > 0  # OIDN's own score: what the run must beat
     from admc.model.inference.denoiser import load_denoiser
+    from admc.model.inference.options import DenoiserOptions
 
     denoiser = load_denoiser(result.weights)
     assert denoiser.name == "admc+oidn" and denoiser.base == base
@@ -145,7 +147,7 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
     out = denoiser(layers)
     assert out.image.shape == layers["diffuse"].shape and np.isfinite(out.image).all()
     assert out.base_seconds > 0
-    dark = load_denoiser(result.weights, dark_pass=True)(layers)  # OIDN runs again at the second exposure
+    dark = load_denoiser(result.weights, DenoiserOptions(dark_pass=True))(layers)  # OIDN runs again at the second exposure
     assert np.isfinite(dark.image).all() and (dark.dark_share == 0) == np.array_equal(dark.image, out.image)
 
 
@@ -161,7 +163,7 @@ def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn_at_its_quali
     layers = exr.read_exr(cfg.workdir_path("renders") / specular_scene / "spp0004.exr")
     layers["coverage"] = np.ones_like(layers["coverage"])  # every pixel goes through the network
     branches = {b: refiner(base=base) for b in ("diffuse", "specular")}
-    out = FullImageDenoiser(branches["diffuse"], branches["specular"], tile=24, dtype=inference_dtype)(layers)
+    out = FullImageDenoiser(branches["diffuse"], branches["specular"], DenoiserOptions(tile=24, dtype=inference_dtype))(layers)
     clean = {name: sanitize(layers[name], name)[0] for name in ("diffuse", "specular", "albedo", "normal")}
     bases = oidn_bases(clean, base)
     # the untrained correction is exactly zero in either precision (its last conv starts at zero) and

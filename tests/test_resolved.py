@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.resolved import keep_resolved
 
 SIZE = 64
@@ -114,7 +115,7 @@ def pattern_layers(variance: float | None) -> dict[str, np.ndarray]:
 
 
 def test_the_denoiser_keeps_resolved_detail_only_with_the_variance_layer_and_the_option():
-    make = lambda keep: FullImageDenoiser(Smear(), None, overlap=0, dtype=torch.float32, keep_resolved=keep)
+    make = lambda keep: FullImageDenoiser(Smear(), None, DenoiserOptions(overlap=0, dtype=torch.float32, keep_resolved=keep))
     layers = pattern_layers(1e-4)
     plain, kept = make(False)(layers), make(True)(layers)
     truth = stripes()

@@ -6,6 +6,7 @@ import torch
 
 from admc.common.layout import ENSEMBLES
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.symmetry import ENSEMBLE_CODES, N_SYMMETRIES, apply, undo
 from admc.model.transforms import diffuse_forward, specular_forward
 from test_inference import log_tolerance, render_layers, strong_generator
@@ -41,11 +42,11 @@ def _transposed(layers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 def test_an_eight_way_ensemble_is_equivariant_and_one_way_is_the_plain_denoiser(inference_dtype):
     diffuse, specular = strong_generator(2, scale=0.7), strong_generator(3, scale=0.7)
     layers = render_layers(24, 40)
-    plain_denoiser = FullImageDenoiser(diffuse, specular, dtype=inference_dtype)
+    plain_denoiser = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype))
     plain = plain_denoiser(layers)
-    assert np.array_equal(FullImageDenoiser(diffuse, specular, dtype=inference_dtype, ensemble=1)(layers).image,
+    assert np.array_equal(FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype, ensemble=1))(layers).image,
                           plain.image)
-    ensemble = FullImageDenoiser(diffuse, specular, dtype=inference_dtype, ensemble=8)
+    ensemble = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype, ensemble=8))
     assert ensemble.device.endswith(", ensemble of 8")  # said next to its timings in the tables
     result = ensemble(layers)
     assert np.abs(plain.image - result.image).max() > 1e-3  # the ensemble is not the plain output
@@ -64,4 +65,4 @@ def test_an_eight_way_ensemble_is_equivariant_and_one_way_is_the_plain_denoiser(
 
 def test_an_ensemble_size_that_is_not_offered_is_refused():
     with pytest.raises(ValueError, match=r"ensemble must be one of \(1, 2, 4, 8\), got 3"):
-        FullImageDenoiser(strong_generator(0), None, ensemble=3)
+        FullImageDenoiser(strong_generator(0), None, DenoiserOptions(ensemble=3))

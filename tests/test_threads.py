@@ -11,6 +11,7 @@ from test_inference import render_layers
 
 from admc.common.threads import torch_inline
 from admc.model.inference.denoiser import load_denoiser
+from admc.model.inference.options import DenoiserOptions
 
 
 @pytest.fixture
@@ -43,7 +44,7 @@ class ThreadsSeen:
 
 @pytest.mark.parametrize("engine, threads_inside", [("openvino", 1), ("torch", 2)])
 def test_only_the_exported_engines_run_torch_inline(two_threads, engine, threads_inside):
-    denoiser = load_denoiser(SHIPPED, engine=engine, dtype=torch.float32)
+    denoiser = load_denoiser(SHIPPED, DenoiserOptions(engine=engine, dtype=torch.float32))
     recorder = denoiser.generators["diffuse"] = ThreadsSeen(denoiser.generators["diffuse"])
     denoiser(render_layers(24, 32, seed=5))
     assert recorder.seen and set(recorder.seen) == {threads_inside}

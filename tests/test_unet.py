@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 from admc.model.inference.denoiser import FullImageDenoiser, load_denoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.inference.tiling import receptive_radius, run_tiled
 from admc.model.nets.backbones import build_generator
 from admc.model.nets.generator import Generator, scaled_kaiming_
@@ -101,8 +102,8 @@ def test_full_image_denoiser_tiles_a_unet_exactly_and_loads_it_from_weights(tmp_
               "albedo": rng.random((45, 60, 3), dtype=np.float32),
               "normal": np.tile(np.array([0, 0, 1], np.float32), (45, 60, 1))}
     g = strong_unet(3)
-    tiled = FullImageDenoiser(g, None, tile=16, dtype=inference_dtype)(layers)
-    untiled = FullImageDenoiser(g, None, tile=512, dtype=inference_dtype)(layers)
+    tiled = FullImageDenoiser(g, None, DenoiserOptions(tile=16, dtype=inference_dtype))(layers)
+    untiled = FullImageDenoiser(g, None, DenoiserOptions(tile=512, dtype=inference_dtype))(layers)
     assert tiled.tiles == 12 and untiled.tiles == 1
     tolerance = log_tolerance(inference_dtype, np.abs(diffuse_forward(untiled.diffuse, layers["albedo"])).max())
     gain = np.abs(untiled.diffuse) + layers["albedo"] + EPS  # d(linear)/d(log), as in test_inference
@@ -114,7 +115,7 @@ def test_full_image_denoiser_tiles_a_unet_exactly_and_loads_it_from_weights(tmp_
     path = tmp_path / "unet.pt"
     export_weights(path, {"diffuse": {"generator": g.state_dict(), "critic": {}}},
                    {"model": dataclasses.asdict(model), "transform": transform_spec(), "patch_size": 32})
-    loaded = load_denoiser(path, tile=16)
+    loaded = load_denoiser(path, DenoiserOptions(tile=16))
     assert isinstance(loaded.generators["diffuse"], UNetGenerator)
     for name, value in loaded.generators["diffuse"].state_dict().items():  # the fp16 file's values
         assert torch.equal(value, g.state_dict()[name].half().float()), name

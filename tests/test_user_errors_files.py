@@ -22,7 +22,7 @@ from test_train_stage import flags, settings
 from test_user_errors_cli import SHIPPED, refused
 
 from admc.pipeline.config import ConfigError, load_config
-from admc.pipeline.dataset.report import contact_sheet_path
+from admc.pipeline.tiler.report import contact_sheet_path
 from admc.stores import patches
 from admc.stores.checkpoints import export_weights, load_weights
 from admc.stores.exr import read_exr, write_exr

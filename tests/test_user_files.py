@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from admc.model.inference.denoiser import FullImageDenoiser
+from admc.model.inference.options import DenoiserOptions
 from admc.model.nets.generator import Generator
 from admc.model.nets.settings import ModelSettings
 from admc.pipeline.stages.denoise import DenoiseInputError, load_denoise_input, write_denoised
@@ -17,7 +18,7 @@ H, W = 24, 40
 @pytest.fixture(scope="module")
 def denoiser():
     torch.manual_seed(0)
-    return FullImageDenoiser(Generator(TINY), Generator(TINY), tile=16)
+    return FullImageDenoiser(Generator(TINY), Generator(TINY), DenoiserOptions(tile=16))
 
 
 def buffers(seed=0):

@@ -16,13 +16,12 @@ import contextlib
 import itertools
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
-from admc.common.buffers import DENOISER_LAYERS, LAYERS, MISSING_LAYERS, sanitize
 from admc.common.diff import differing_keys
 from admc.common.threads import torch_inline
 from admc.errors import AdmcError
@@ -43,12 +42,14 @@ from ..transforms import (
     specular_noise,
 )
 from .engines import OnnxGenerator, check_engine, default_precision, onnx_generators, resolve_engine, run_together
-from .exposure import DARK_GAIN, dark_weights, exposure_gain
+from .exposure import DARK_GAIN, dark_region, dark_weights, exposure_gain
+from .input_layers import sanitize_layers
 from .oidn_base import oidn_bases
+from .options import DenoiserOptions
 from .resolved import keep_resolved
+from .result import DenoiseResult
 from .tiling import default_tile, paste, receptive_radius, tile_calls
 
-REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
 WHOLE_IMAGE = (slice(None), slice(None))
 # Largest log value an input can take; network outputs are clamped to it so the inverse stays finite.
 LOG_MAX = {
@@ -64,44 +65,6 @@ class MissingVarianceError(AdmcError, KeyError):
         return str(self.args[0])
 
 
-@dataclass
-class DenoiseResult:
-    """One denoised image, its parts, what was repaired on the way in, and what it cost."""
-
-    image: np.ndarray                    # (H, W, 3) float32 linear HDR: diffuse + specular
-    diffuse: np.ndarray                  # (H, W, 3) float32 linear denoised diffuse (albedo re-applied)
-    specular: np.ndarray | None          # (H, W, 3) linear specular: denoised, or the input passed through
-    branches: tuple[str, ...]            # the branches whose network ran: ("diffuse",) or both
-    specular_passed_through: bool        # the input had specular but no specular generator was given
-    sanitized: dict[str, dict[str, int]] = field(default_factory=dict)  # layer -> nonzero repair counts
-    nonfinite_outputs: int = 0           # network output values that were NaN/Inf (set to 0)
-    tiles: int = 1                       # network calls per branch
-    network_seconds: float = 0.0         # generator time, synchronised (both branches)
-    base_seconds: float = 0.0            # OIDN's time for a refiner's bases (0 for base "noisy")
-    exposure_gain: float = 1.0           # the radiance went through the networks times this (exposure.py)
-    dark_share: float = 0.0              # mean share of the second pass at DARK_GAIN x that (0: it did not run)
-    resolved_share: float = 0.0          # mean weight of the input kept where it was resolved (resolved.py)
-    seconds: float = 0.0                 # whole call: sanitising, OIDN, transforms, networks, inverse
-
-    @property
-    def notes(self) -> list[str]:
-        """Plain sentences for the user about what happened beyond the obvious."""
-        notes = []
-        for layer, counts in self.sanitized.items():
-            what = ", ".join(f"{n} {kind}" for kind, n in counts.items())
-            notes.append(f"{layer}: repaired {what} value(s) before denoising")
-        if self.specular_passed_through:
-            notes.append("specular: no specular network given, the noisy specular was added unchanged")
-        if self.nonfinite_outputs:
-            notes.append(f"the network produced {self.nonfinite_outputs} non-finite value(s), set to 0")
-        if self.exposure_gain != 1.0:
-            notes.append(f"a dim image: denoised at {self.exposure_gain:.3g}x its exposure, the output scaled back")
-        if self.resolved_share:
-            notes.append(f"where the render was already resolved, kept its detail (mean weight of the input "
-                         f"{self.resolved_share:.2g})")
-        return notes
-
-
 def _device_description(device: torch.device) -> str:
     if device.type == "cuda":
         index = device.index if device.index is not None else torch.cuda.current_device()
@@ -113,47 +76,22 @@ class FullImageDenoiser:
     """Sanitize -> forward transforms -> diffuse [and specular] generator -> inverse -> linear HDR.
 
     `diffuse` and `specular` are admc Generators (or any module called as `(noisy, features)`; those
-    need an explicit `overlap`). They are moved to `device` and put in eval mode. `tile` is the
-    largest core edge run at once (None: tiling.default_tile, by device, halo and engine); `overlap` is the
-    halo around each core, by default the largest receptive radius of the two generators, and a
-    smaller one is refused (tiles would then differ from the untiled image: seams). `dtype`: None =
-    bfloat16 autocast on CUDA and on CPUs with hardware bf16 (AVX512-BF16 or AMX), float32 elsewhere
-    (precision.resolve_precision).
-    `compile` wraps the generators in torch.compile (worth it on GPUs for many images; the first
-    image then pays the compile time). `name` is its column in the evaluation tables, `source` the
-    weights file it came from (reported next to the tables). `base` is what the generators correct:
-    "noisy", or "oidn" / "oidn-fast" for refiners (then OIDN runs first, at that base's qualities, inside
-    the call). `normalize_exposure` scales dim images up for the networks (exposure.py); False is the
-    measurement without it.
-    `dark_pass` denoises the image a second time at DARK_GAIN times the exposure where it has dark
-    regions, and takes those from it (exposure.dark_weights): up to twice the network time.
-    `ensemble` (1, 2, 4 or 8) averages the networks' outputs over that many symmetries of the input
-    (symmetry.py), at that many times the network time. `keep_resolved` moves the output back toward the
-    input where the input is nearly converged and the output departs from it beyond its noise
-    (resolved.py); it needs the variance layers (diffuse_var, specular_var) and is skipped without them.
-    `engine` runs the generators' forward passes: "torch" (the reference), or on a CPU their exported
-    ONNX graphs in "onnxruntime" (float32) or "openvino" (`dtype` as for torch: its
-    INFERENCE_PRECISION_HINT); "auto" is openvino on a CPU and torch on a GPU (engines.resolve_engine).
-    Everything around the networks is the same in every engine.
+    need an explicit `options.overlap`). They are moved to the device and put in eval mode. `options` says
+    how it runs and what it does around the networks (options.py). A refiner's generators (config.base
+    "oidn" / "oidn-fast") correct OIDN's output, which runs first, at that base's qualities, inside the call.
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
-    def __init__(self, diffuse: nn.Module, specular: nn.Module | None, *, device: str | torch.device = "cpu",
-                 tile: int | None = None, overlap: int | None = None, dtype: torch.dtype | None = None,
-                 compile: bool = False, name: str = "admc", source: str | None = None,
-                 normalize_exposure: bool = True, dark_pass: bool = False, ensemble: int = 1,
-                 engine: str = "torch", keep_resolved: bool = False, oidn_blend: dict[str, float] | None = None) -> None:
-        if tile is not None and tile < 1:
-            raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {tile}")
-        if ensemble not in ENSEMBLE_CODES:
-            raise ValueError(f"FullImageDenoiser: ensemble must be one of {tuple(ENSEMBLE_CODES)}, got {ensemble!r}")
-        self.torch_device = torch.device(device)
+    def __init__(self, diffuse: nn.Module, specular: nn.Module | None,
+                 options: DenoiserOptions = DenoiserOptions()) -> None:
+        self.options = options
+        self.torch_device = torch.device(options.device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError(f"FullImageDenoiser: device {str(device)!r} asked for, but torch sees no CUDA GPU")
-        engine = resolve_engine(engine, self.torch_device)
-        self.dtype = dtype or default_precision(engine, self.torch_device)
+            raise RuntimeError(f"FullImageDenoiser: device {str(options.device)!r} asked for, but torch sees no CUDA GPU")
+        engine = resolve_engine(options.engine, self.torch_device)
+        self.dtype = options.dtype or default_precision(engine, self.torch_device)
         check_engine(engine, self.torch_device, self.dtype)
-        if compile and engine != "torch":
+        if options.compile and engine != "torch":
             raise ValueError(f"FullImageDenoiser: compile is torch.compile, engine {engine!r} compiles its own graph")
         self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
         self.noise_branches = {branch for branch, g in (("diffuse", diffuse), ("specular", specular))
@@ -163,6 +101,7 @@ class FullImageDenoiser:
         if specular is not None:
             self.generators["specular"] = self._prepare(specular)
         radius = max((receptive_radius(g) if isinstance(g, Generator) else 0) for g in self.generators.values())
+        overlap = options.overlap
         if overlap is None:
             if not all(isinstance(g, Generator) for g in self.generators.values()):
                 raise ValueError("FullImageDenoiser: overlap must be given for modules that are not admc Generators")
@@ -171,7 +110,7 @@ class FullImageDenoiser:
             raise ValueError(f"FullImageDenoiser: overlap {overlap} is below the receptive field radius {radius} "
                              f"of the generator; tiles would not match the untiled image (visible seams)")
         self.alignment = max(getattr(g, "alignment", 1) for g in self.generators.values())
-        if compile:
+        if options.compile:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
         if engine != "torch":
             self.generators = onnx_generators(self.generators, engine, self.dtype)
@@ -179,18 +118,18 @@ class FullImageDenoiser:
         self.memory_format = MEMORY_FORMAT if engine == "torch" else torch.contiguous_format
         """The inputs' layout: torch's convs want channels_last; the exported graphs take NCHW, so their
         tiles are then row copies, not transposes."""
-        self.tile = tile or default_tile(self.torch_device, overlap, engine)
+        self.tile = options.tile or default_tile(self.torch_device, overlap, engine)
         self.overlap = overlap
         self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
-                       + (f", ensemble of {ensemble}" if ensemble > 1 else "")
-                       + (", dark pass" if dark_pass else "")
-                       + (", keeps resolved input" if keep_resolved else ""))
-        self.name, self.source = name, source
-        self.normalize_exposure = normalize_exposure
-        self.dark_pass = dark_pass
-        self.ensemble = ensemble
-        self.keep_resolved = keep_resolved
-        self.oidn_blend = dict(oidn_blend or {})
+                       + (f", ensemble of {options.ensemble}" if options.ensemble > 1 else "")
+                       + (", dark pass" if options.dark_pass else "")
+                       + (", keeps resolved input" if options.keep_resolved else ""))
+        self.name, self.source = options.name or "admc", options.source
+        self.normalize_exposure = options.normalize_exposure
+        self.dark_pass = options.dark_pass
+        self.ensemble = options.ensemble
+        self.keep_resolved = options.keep_resolved
+        self.oidn_blend = dict(options.oidn_blend or {})
         if self.oidn_blend and self.base != "noisy":
             raise ValueError("FullImageDenoiser: an OIDN blend is for admc's own output (base 'noisy'), not a refiner's")
         if self.oidn_blend:
@@ -360,19 +299,6 @@ class FullImageDenoiser:
         return summed
 
 
-def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, slice]:
-    """The rows and columns the dark pass must run on: the bounding box of the pixels with a weight, grown
-    by the networks' halo and started on their grid (tiling.axis_windows' two conditions for exactness).
-    A small object's shadows on a black background need a fraction of the image."""
-    def span(lit: np.ndarray) -> slice:
-        first, last = np.flatnonzero(lit)[[0, -1]]
-        start = max(int(first) - halo, 0)
-        return slice(start - start % alignment, min(int(last) + 1 + halo, lit.size))
-
-    dark = weights[..., 0] > 0
-    return span(dark.any(axis=1)), span(dark.any(axis=0))
-
-
 def _keep_resolved(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None,
                    run_specular: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
     """Each denoised branch with a variance layer moved toward its input where that is resolved (resolved.py);
@@ -437,53 +363,17 @@ def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarr
     return {branch: np.where(environment, inputs[branch], out) for branch, out in outputs.items()}
 
 
-def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
-                    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
-    """Check shapes, fill a missing depth/coverage (MISSING_LAYERS) and sanitize every layer, and the
-    `variances` (names of buffers.VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
-
-    Returns the clean float32 layers and, per layer with any repair, the nonzero counts of NaN,
-    +-Inf and out-of-range values (negative radiance or albedo, radiance above RADIANCE_MAX, ...).
-    """
-    missing = [name for name in REQUIRED_LAYERS if name not in layers]
-    if missing:
-        raise KeyError(f"denoiser input lacks layer(s) {', '.join(missing)} (has {', '.join(sorted(layers))})")
-    size = np.shape(layers["diffuse"])[:2]
-    for name in (*DENOISER_LAYERS, *variances):
-        expected = (*size, len(LAYERS[name].channels))
-        if name in layers and np.shape(layers[name]) != expected:
-            raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(layers[name])}, "
-                             f"expected {expected} to match diffuse")
-    if size[0] < 1 or size[1] < 1:
-        raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
-    filled = dict(layers)
-    for name, value in MISSING_LAYERS.items():
-        filled.setdefault(name, np.full((*size, 1), value, dtype=np.float32))
-    clean, report = {}, {}
-    for name in (*DENOISER_LAYERS, *variances):
-        if name in filled:
-            clean[name], counts = sanitize(filled[name], name)
-            nonzero = {kind: n for kind, n in counts.items() if n}
-            if nonzero:
-                report[name] = nonzero
-    return clean, report
-
-
 COLUMN_NAMES = {"noisy": "admc", "oidn": "admc+oidn", "oidn-fast": "admc+oidn"}
 """A learned denoiser's default column name in the tables, by the base its weights record."""
 
 
-def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None = None,
-                  compile: bool = False, name: str | None = None, normalize_exposure: bool = True,
-                  dark_pass: bool = False, ensemble: int = 1, engine: str = "torch",
-                  dtype: torch.dtype | None = None, keep_resolved: bool = False,
-                  oidn_blend: bool = True) -> FullImageDenoiser:
-    """Both branches' generators from a training checkpoint or exported weights, ready to denoise;
-    named `name`, else after the base the file records (COLUMN_NAMES).
+def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend: bool = True) -> FullImageDenoiser:
+    """Both branches' generators from a training checkpoint or exported weights, ready to denoise as
+    `options` say; named `options.name`, else after the base the file records (COLUMN_NAMES); blended with
+    OIDN at the shares the weights ship (train.oidn_blend) unless `oidn_blend` is False.
 
     Refuses weights trained on other transforms than this code applies (their outputs would be
-    inverted wrongly); a file without a specular branch denoises diffuse only. Weights that ship an OIDN
-    blend (train.oidn_blend) are blended with OIDN's output unless `oidn_blend` is False.
+    inverted wrongly); a file without a specular branch denoises diffuse only.
     """
     from admc.stores.checkpoints import CheckpointError, load_network, read_blend, read_networks
 
@@ -508,8 +398,6 @@ def load_denoiser(path, *, device: str | torch.device = "cpu", tile: int | None 
         load_network(generator, state["generator"], f"{path}: {branch} generator",
                      "the architecture its own metadata describes")
         generators[branch] = generator.eval()
-    return FullImageDenoiser(generators["diffuse"], generators.get("specular"), device=device, tile=tile,
-                             compile=compile, name=name or COLUMN_NAMES[config.base], source=str(path),
-                             normalize_exposure=normalize_exposure, dark_pass=dark_pass, ensemble=ensemble,
-                             engine=engine, dtype=dtype, keep_resolved=keep_resolved,
-                             oidn_blend=read_blend(path) if oidn_blend else None)
+    return FullImageDenoiser(generators["diffuse"], generators.get("specular"),
+                             replace(options, name=options.name or COLUMN_NAMES[config.base], source=str(path),
+                                     oidn_blend=read_blend(path) if oidn_blend else None))

@@ -8,6 +8,7 @@ float32 0.72 s and OpenVINO bf16 0.31 s (STACK_NOTES.md; docs/engines.md).
 """
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 
@@ -19,7 +20,8 @@ from admc.common.layout import ENGINE_CHOICES, ENGINES
 from admc.errors import AdmcError
 
 from ..precision import resolve_precision
-from .export import generator_graph
+from .onnx_export import generator_graph
+
 
 class EngineError(AdmcError, ValueError):
     """An engine that does not exist, is not installed, or cannot run as asked (device, precision)."""
@@ -60,6 +62,29 @@ running the tiles in turn at two threads (paired median of 21 alternating runs),
 (docs/engines.md)."""
 
 
+_openvino_core = None  # the one openvino.Core, once made
+_openvino_core_lock = threading.Lock()
+
+
+def openvino_core():
+    """The process's one OpenVINO Core, made at its first use and kept to the end of the process.
+
+    One, never released: each Core makes a CPU plugin of its own, and on Linux that plugin puts an alternate
+    signal stack of its own on the thread that makes it (mmap, sigaltstack), puts back the one it found when
+    it is released, if its own is still current, and unmaps its own. Two plugins released first-in first-out
+    leave the thread's alternate stack pointing at unmapped memory; the next signal that runs a handler on
+    that thread (Python's handlers run on the alternate stack: SIGINT, or the SIGCHLD handler torch's
+    DataLoader installs) then kills the process with a SIGSEGV that even faulthandler cannot report. That
+    was the one-process test suite's segfault (docs/design-decisions.md)."""
+    global _openvino_core
+    with _openvino_core_lock:
+        if _openvino_core is None:
+            import openvino
+
+            _openvino_core = openvino.Core()
+        return _openvino_core
+
+
 class OnnxGenerator:
     """An exported generator graph under ONNX Runtime or OpenVINO, called as `(noisy, features[, base])`
     with float tensors on the CPU; returns the float32 output tensor. With `noise_input` the features'
@@ -81,9 +106,7 @@ class OnnxGenerator:
             self._session = onnxruntime.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
             self._names = [i.name for i in self._session.get_inputs()]
         else:
-            import openvino
-
-            self._core = openvino.Core()
+            self._core = openvino_core()
             self._model = self._core.read_model(graph)
             self._threads = torch.get_num_threads()
             self._precision = "bf16" if dtype == torch.bfloat16 else "f32"

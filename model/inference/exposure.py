@@ -13,7 +13,7 @@ units. Bright images keep k = 1: scaling them down measured worse, not better.
 The same holds inside one image: the dark regions of a bright image (shadows, the dim side of an
 object) sit in log1p's linear range too, where the networks' small absolute error in the log domain is
 a large relative one. So a second pass denoises the dark region again at DARK_GAIN times the exposure
-(inference.dark_region), and dark_weights() takes each pixel from it by how dark the first pass found
+(dark_region), and dark_weights() takes each pixel from it by how dark the first pass found
 it. Measured with the shipped weights, ensemble 4, as multiples of one pass, at 4 / 16 / 64 spp
 (docs/design-decisions.md, "Dark pass").
 """
@@ -80,3 +80,16 @@ def dark_weights(denoised: np.ndarray, gain: float, coverage: np.ndarray) -> np.
     stops = np.log2(DARK_LEVEL / np.maximum(luminance, np.float32(1e-30)))
     weights = np.clip(stops / np.log2(DARK_GAIN), 0.0, 1.0)
     return np.where(coverage[..., 0] > 0, weights, 0.0)[..., None].astype(np.float32)
+
+
+def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, slice]:
+    """The rows and columns the dark pass must run on: the bounding box of the pixels with a weight, grown
+    by the networks' halo and started on their grid (tiling.axis_windows' two conditions for exactness).
+    A small object's shadows on a black background need a fraction of the image."""
+    def span(lit: np.ndarray) -> slice:
+        first, last = np.flatnonzero(lit)[[0, -1]]
+        start = max(int(first) - halo, 0)
+        return slice(start - start % alignment, min(int(last) + 1 + halo, lit.size))
+
+    dark = weights[..., 0] > 0
+    return span(dark.any(axis=1)), span(dark.any(axis=0))

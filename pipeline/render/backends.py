@@ -1,5 +1,5 @@
 """The corpus and its render tasks over both renderers: Mitsuba scenes (procedural families, XML files) through
-`tasks.py`, Blender `.blend` scenes through `blender/tasks.py`. The stages import this module; each renderer's
+`tasks.py`, Blender `.blend` scenes through `blender/cycles_tasks.py`. The stages import this module; each renderer's
 tasks keep their own code version, so adding Cycles re-rendered no Mitsuba scene.
 """
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 from admc.pipeline.config import Config
 from admc.pipeline.engine.cache import Task
 from admc.pipeline.render import tasks as mitsuba
-from admc.pipeline.render.blender import tasks as cycles
+from admc.pipeline.render.blender import cycles_tasks as cycles
 from admc.pipeline.render.scenes import SceneError
 
 EXR_NAME = mitsuba.EXR_NAME

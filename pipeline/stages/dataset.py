@@ -10,7 +10,7 @@ from admc.model import transforms
 from admc.model.inference import oidn_base
 from admc.model.nets.settings import DOWNSAMPLING
 from admc.pipeline.config import Config
-from admc.pipeline.dataset import tile
+from admc.pipeline.tiler import tile
 from admc.pipeline.engine import runner
 from admc.pipeline.engine.cache import Task, code_version
 from admc.pipeline.render import backends as render

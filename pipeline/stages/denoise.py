@@ -40,7 +40,7 @@ from .denoise_formats import LayerMap, Recognised, recognise
 from .denoise_layers import build_layers, camera_normals, missing_roles
 
 if TYPE_CHECKING:  # reading and checking the input needs no torch, so a bad file is named in a second
-    from admc.model.inference.denoiser import DenoiseResult
+    from admc.model.inference.result import DenoiseResult
 
 SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
             "specular": ".specular.exr", "depth": ".depth.exr"}

@@ -10,9 +10,10 @@ from pathlib import Path
 
 from admc.common.metrics import METRICS
 from admc.errors import AdmcError, StageError
+from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import Config
-from admc.pipeline.dataset import tile
-from admc.pipeline.evaluation import evaluate, html
+from admc.pipeline.tiler import tile
+from admc.pipeline.evaluation import html, scoring
 from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser,
                                                 optix_unavailable_reason)
 from admc.pipeline.evaluation.inputs import find_test_images
@@ -107,8 +108,9 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     models = []
     for name, path in named:
         for ensemble, dark_pass, suffix in settings:
-            model = load_model(cfg, path, device, name=name, ensemble=ensemble, dark_pass=dark_pass,
-                               engine=cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved)
+            model = load_model(cfg, path, DenoiserOptions(device=device, name=name, ensemble=ensemble,
+                                                          dark_pass=dark_pass, engine=cfg.eval.engine,
+                                                          keep_resolved=cfg.eval.keep_resolved))
             model.name += suffix
             models.append(model)
     return models
@@ -167,7 +169,7 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
     figures = ReportFigures()
-    result = evaluate.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
+    result = scoring.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
                                warmup=cfg.eval.warmup, not_run=not_run, on_image=figures)
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = html.write_report(

@@ -6,7 +6,7 @@ from pathlib import Path
 from admc.common.buffers import MISSING_LAYERS
 from admc.errors import AdmcError
 from admc.model.inference.denoiser import LOG_MAX, load_denoiser
-from admc.model.inference.export import MANIFEST_NAME, export_generator, export_manifest
+from admc.model.inference.onnx_export import MANIFEST_NAME, export_generator, export_manifest
 from admc.model.transforms import transform_spec
 from admc.stores.atomic import publishing, write_json
 

@@ -11,7 +11,7 @@ from admc.model.training import distributed
 from admc.model.training.distributed import check_world
 from admc.model.training.trainer import TrainResult, check_fresh_start, train
 from admc.pipeline.config import Config
-from admc.pipeline.dataset import tile
+from admc.pipeline.tiler import tile
 from admc.pipeline.render import backends as render
 from admc.pipeline.stages.dataset import build_dataset
 from admc.pipeline.weights import shipped_mismatch, shipped_weights, train_dir

@@ -1,1 +1,0 @@
-"""The dataset: renders tiled into the Zarr patch store (`tile`), and its summary (`report`)."""
