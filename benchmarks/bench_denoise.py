@@ -5,7 +5,8 @@ OptiX where Mitsuba's CUDA variant runs), with each admc figure's ratio to OIDN.
 engine (eval.engine of configs/default.toml) in its default precision, the lines
 `admc/oidn time ratio: X` (small) and `admc+oidn/oidn time ratio: X` (small+oidn) against OIDN `high`.
 
-    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720] [--configs paper small small+oidn small-slim small-unet]
+    .venv/bin/python benchmarks/bench_denoise.py [--size 1280x720]
+        [--configs paper small small+oidn small-slim small-unet]
         [--engines torch onnxruntime openvino] [--precisions float32 bfloat16] [--baselines oidn optix]
         [--device cpu|cuda] [--tile N] [--repeats 3] [--warmup 1] [--threads N] [--compile]
 

@@ -40,7 +40,8 @@ def main() -> None:
     print(f"{width}x{height}, median of {args.repeats}")
     for m in METRICS:
         c = statistics.median(cpu[m.key])
-        print(f"  {m.label:9s} wall {statistics.median(wall[m.key]):8.4f} s  cpu {c:8.4f} s  ({c / base:6.1f}x 1-SSIM's cpu)")
+        print(f"  {m.label:9s} wall {statistics.median(wall[m.key]):8.4f} s  cpu {c:8.4f} s  "
+              f"({c / base:6.1f}x 1-SSIM's cpu)")
 
 
 if __name__ == "__main__":

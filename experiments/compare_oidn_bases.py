@@ -21,9 +21,9 @@ from admc.common.buffers import sanitize
 from admc.common.layout import BASE_QUALITIES
 from admc.common.metrics import one_minus_ssim, relmse
 from admc.model.inference.oidn_base import oidn_bases
+from admc.stores.exr import read_exr
 
 BASE = "oidn"  # the refiner's bases this comparison was made for: OIDN high on both branches
-from admc.stores.exr import read_exr
 
 
 def combined(layers: dict) -> np.ndarray:

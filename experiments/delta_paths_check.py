@@ -99,7 +99,8 @@ def main() -> None:
             images[f"{name} now"] = denoiser(layers).image
         print(f"{spp} spp, {int(touched.sum())} touched pixels of {touched.size}")
         for name, image in images.items():
-            print(f"  {name:16s} relMSE {relmse(image, ref):.5f}  touched {relmse(image[touched][None], ref[touched][None]):.5f}"
+            print(f"  {name:16s} relMSE {relmse(image, ref):.5f}  "
+                  f"touched {relmse(image[touched][None], ref[touched][None]):.5f}"
                   f"  1-SSIM {one_minus_ssim(image, ref):.5f}")
 
 

@@ -166,8 +166,9 @@ def test_mirrors_and_glass_show_the_environment_where_the_floor_is_black(variant
 def test_caustic_focuses_the_small_light_through_glass_into_the_balls_shadow(variant):
     """The floor in the shadow an opaque ball would cast (under 5 % of the open floor's light) gets a
     fifth or more of it back through glass: the glass passes ~90 % (Fresnel), some of the caustic may
-    land outside that shadow, and 256 spp estimate it within tens of percent. 256 spp and a camera zoomed onto the ball: at 4 spp a path-traced caustic is a few fireflies (what
-    the corpus wants the denoiser to see, not what a test can measure)."""
+    land outside that shadow, and 256 spp estimate it within tens of percent. 256 spp and a camera zoomed
+    onto the ball: at 4 spp a path-traced caustic is a few fireflies (what the corpus wants the denoiser to
+    see, not what a test can measure)."""
     for seed in range(2):
         scene = with_construct("caustic", seed, ball=False)
         glass = scene["caustic_glass"]

@@ -20,8 +20,9 @@ SIZE = 32
 MIRROR = 0.8  # the sphere's reflectance: a perfect mirror ("material": "none") scaled by it
 
 
-def _sky(mi) -> "mi.Bitmap":
-    """A lat-long environment with detail a curved mirror turns into per-pixel noise: a gradient and a checker."""
+def _sky(mi):
+    """A lat-long environment (a mi.Bitmap) with detail a curved mirror turns into per-pixel noise: a gradient
+    and a checker."""
     theta, phi = np.meshgrid(np.linspace(0, np.pi, 32), np.linspace(0, 2 * np.pi, 64), indexing="ij")
     checker = (np.floor(theta * 6 / np.pi) + np.floor(phi * 6 / np.pi)) % 2
     value = 0.3 + 0.5 * np.cos(theta) ** 2 + 1.5 * checker

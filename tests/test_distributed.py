@@ -1,7 +1,6 @@
 """Data-parallel training with 2 real gloo processes on the CPU (tiny networks, a tiny real store):
 2 ranks take the single-process steps at the same global batch, and a killed rank ends the run with one
 clear message and a checkpoint that resumes."""
-import dataclasses
 import os
 import signal
 import subprocess

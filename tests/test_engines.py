@@ -8,7 +8,7 @@ from test_inference import render_layers
 
 from admc.model.inference.denoiser import load_denoiser
 from admc.model.inference.options import DenoiserOptions
-from admc.model.inference.engines import OPENVINO_SIZES, OPENVINO_STREAMS, EngineError, OnnxGenerator, run_together
+from admc.model.inference.engines import OPENVINO_SIZES, OPENVINO_STREAMS, OnnxGenerator, run_together
 from admc.model.precision import cpu_has_fast_bf16
 from admc.model.transforms import diffuse_forward, specular_forward
 from admc.pipeline.weights import WEIGHTS_DIR

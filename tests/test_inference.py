@@ -207,8 +207,9 @@ def test_environment_pixels_keep_their_input(inference_dtype):
     layers["diffuse"][:, 4:8] = 0.0  # a black one: stays black
     result = FullImageDenoiser(strong_generator(5, scale=0.7), strong_generator(6, scale=0.7),
                                DenoiserOptions(dtype=inference_dtype))(layers)
-    # kept pixels never pass through the networks, in either precision: the log value is stored in float32 (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1),
-    # under 6 for every log value here (d < 5.5), so the radiance comes back within 4e-7
+    # kept pixels never pass through the networks, in either precision: the log value is stored in float32
+    # (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1), under 6 for every log value here
+    # (d < 5.5), so the radiance comes back within 4e-7
     np.testing.assert_allclose(result.diffuse[:, :8], layers["diffuse"][:, :8], rtol=1e-6, atol=0)
     np.testing.assert_allclose(result.specular[:, :8], layers["specular"][:, :8], rtol=1e-6, atol=0)
     assert np.abs(result.diffuse[:, 8:] - layers["diffuse"][:, 8:]).max() > 0.1  # the check can fail

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from admc.pipeline.config import load_config
 from admc.pipeline.stages.corpus import open_cache

@@ -115,7 +115,9 @@ def pattern_layers(variance: float | None) -> dict[str, np.ndarray]:
 
 
 def test_the_denoiser_keeps_resolved_detail_only_with_the_variance_layer_and_the_option():
-    make = lambda keep: FullImageDenoiser(Smear(), None, DenoiserOptions(overlap=0, dtype=torch.float32, keep_resolved=keep))
+    def make(keep: bool) -> FullImageDenoiser:
+        return FullImageDenoiser(Smear(), None, DenoiserOptions(overlap=0, dtype=torch.float32, keep_resolved=keep))
+
     layers = pattern_layers(1e-4)
     plain, kept = make(False)(layers), make(True)(layers)
     truth = stripes()

@@ -5,8 +5,8 @@ Non-finite values are replaced by 0 first (NONFINITE_RULE), so a denoiser that e
 (badly) instead of crashing the evaluation or vanishing from it.
 
 The evaluation scores NumPy images; training's validation scores batches of tensors. `relmse_torch`,
-`psnr_torch` and `one_minus_ssim_torch` are the same definitions per sample of an (N, C, H, W) batch, side by side with the
-NumPy ones so they cannot drift apart (tests/test_metrics.py compares them). HDR-FLIP has no twin and
+`psnr_torch` and `one_minus_ssim_torch` are the same definitions per sample of an (N, C, H, W) batch, side by
+side with the NumPy ones so they cannot drift apart (tests/test_metrics.py compares them). HDR-FLIP has no twin and
 validation leaves it out: NVIDIA's implementation costs ~25x SSIM's time (benchmarks/bench_metrics.py).
 """
 from __future__ import annotations

@@ -247,14 +247,16 @@ def _plot_html(path: Path) -> str:
     if not data.startswith(PNG_SIGNATURE):
         raise ValueError(f"plot {path}: not a PNG file")
     uri = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
-    return f'<figure class="plot"><img src="{uri}" alt="{_esc(path.stem)}"><figcaption>{_esc(path.stem)}</figcaption></figure>'
+    return (f'<figure class="plot"><img src="{uri}" alt="{_esc(path.stem)}">'
+            f'<figcaption>{_esc(path.stem)}</figcaption></figure>')
 
 
 _DISPLAY_RULES = (
     f"<li>Images: tone-mapped with clip(max(x, 0)<sup>1/{GAMMA}</sup>) to 8 bit, no exposure change "
     f"(the display mapping PSNR and SSIM are computed on).</li>"
-    f"<li>Heat maps: per-pixel relative squared error mean<sub>c</sub> (x&minus;ref)&sup2; / (ref&sup2; + {HEAT_EPS:g}), "
-    f"log<sub>10</sub> colour scale fixed from 1e{HEAT_LOG10_RANGE[0]:g} to 1e{HEAT_LOG10_RANGE[1]:g} for every map.</li>"
+    f"<li>Heat maps: per-pixel relative squared error mean<sub>c</sub> (x&minus;ref)&sup2; / "
+    f"(ref&sup2; + {HEAT_EPS:g}), log<sub>10</sub> colour scale fixed from 1e{HEAT_LOG10_RANGE[0]:g} "
+    f"to 1e{HEAT_LOG10_RANGE[1]:g} for every map.</li>"
     f"<li>NaN/Inf pixels are magenta. Images larger than {MAX_EMBED[0]}x{MAX_EMBED[1]} are box-downscaled "
     f"in linear space to fit before embedding; the zoom magnifies the embedded pixels.</li>"
     f"<li>Zoom: hover an image to magnify the same region in every image of its scene; click to pin or "

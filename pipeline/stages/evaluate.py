@@ -160,9 +160,9 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     optix, not_run = optix_denoisers(cfg.eval.optix)
     specs = eval_scenes(cfg)
     if not specs:
+        none_built = " and eval.test_scenes_per_family is 0" if cfg.eval.split == "test" else ""
         raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "
-                             f"(tile.split = {list(cfg.tile.split)}){' and eval.test_scenes_per_family is 0' if cfg.eval.split == 'test' else ''}; "
-                             f"add scenes or change tile.split")
+                             f"(tile.split = {list(cfg.tile.split)}){none_built}; add scenes or change tile.split")
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(scoring_config(cfg), progress, specs).renders_dir
     images = find_test_images(renders_dir, scene_ids)
