@@ -3,6 +3,7 @@
 The subpackages live in top-level folders (see pyproject's package-dir): `admc.pipeline`,
 `admc.model`, `admc.stores`, `admc.cli`. Imports flow cli -> pipeline -> model -> stores.
 """
+
 import os
 
 # libgomp, the OpenMP runtime of torch and of flip-evaluator, spins 300,000 times after each parallel

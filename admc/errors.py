@@ -4,6 +4,7 @@ The CLI catches AdmcError and prints its message: it names the file or key and t
 else is a bug and keeps its traceback. Subclasses also derive from the built-in type they replaced
 (ValueError, RuntimeError), so callers that caught those keep working.
 """
+
 from __future__ import annotations
 
 import errno

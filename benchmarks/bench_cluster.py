@@ -10,6 +10,7 @@ then `admc-pipe tile` (renders nothing, sync scheduler) runs in a child process 
     python benchmarks/bench_cluster.py --workers 1 2 4 --set corpus.n_scenes=32
     python benchmarks/bench_cluster.py --tile-scenes 2 4 8 --skip-throughput
 """
+
 import argparse
 import os
 import sys
@@ -22,8 +23,13 @@ from admc.pipeline.render.variants import use_variant
 from admc.pipeline.stages.render import render_corpus
 from admc.stores.patches import store_summary
 
-SMALL = ["render.resolution=[64, 64]", "render.spp=[4, 16]", "render.reference_spp=64", "corpus.n_scenes=8",
-         "tile.patch_size=32"]
+SMALL = [
+    "render.resolution=[64, 64]",
+    "render.spp=[4, 16]",
+    "render.reference_spp=64",
+    "corpus.n_scenes=8",
+    "tile.patch_size=32",
+]
 TILE = ["render.resolution=[128, 128]", "tile.patch_size=64", "tile.crops_per_scene=8"]  # rows worth measuring
 
 
@@ -35,11 +41,18 @@ def throughput(overrides: list[str], workers: int, scratch: Path) -> tuple[float
     """Seconds to render the corpus on a warm cluster of `workers` processes, renders and samples done."""
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         client.run(use_variant, "auto")
-        warm = _config(overrides, scratch / f"warmup{workers}", cluster.scheduler_address,
-                       f"corpus.n_scenes={workers}", "corpus.seed=999")
+        warm = _config(
+            overrides,
+            scratch / f"warmup{workers}",
+            cluster.scheduler_address,
+            f"corpus.n_scenes={workers}",
+            "corpus.seed=999",
+        )
         render_corpus(warm, progress=False)
         cfg = _config(overrides, scratch / f"workers{workers}", cluster.scheduler_address)
         start = time.perf_counter()
@@ -57,8 +70,12 @@ def tiling_peak_rss(overrides: list[str], n_scenes: int, scratch: Path) -> tuple
     command = [str(Path(sys.executable).parent / "admc-pipe"), "tile", *[x for s in sets for x in ("--set", s)]]
     log = scratch / f"tile{n_scenes}.log"
     with open(log, "w") as out:
-        pid = os.posix_spawn(command[0], command, os.environ, file_actions=[
-            (os.POSIX_SPAWN_DUP2, out.fileno(), 1), (os.POSIX_SPAWN_DUP2, out.fileno(), 2)])
+        pid = os.posix_spawn(
+            command[0],
+            command,
+            os.environ,
+            file_actions=[(os.POSIX_SPAWN_DUP2, out.fileno(), 1), (os.POSIX_SPAWN_DUP2, out.fileno(), 2)],
+        )
     _, status, usage = os.wait4(pid, 0)  # this child's own peak RSS, not the other children's
     if os.waitstatus_to_exitcode(status) != 0:
         sys.exit(f"admc-pipe tile failed:\n{log.read_text()}")
@@ -82,8 +99,10 @@ def main() -> None:
             for workers in args.workers:
                 wall, renders, samples = throughput(args.overrides, workers, scratch)
                 base = base or renders / wall
-                print(f"{workers} worker(s): {renders} renders in {wall:.1f} s = {renders / wall:.2f} renders/s, "
-                      f"{samples / wall / 1e6:.2f} Msamples/s, x{renders / wall / base:.2f} vs {args.workers[0]}")
+                print(
+                    f"{workers} worker(s): {renders} renders in {wall:.1f} s = {renders / wall:.2f} renders/s, "
+                    f"{samples / wall / 1e6:.2f} Msamples/s, x{renders / wall / base:.2f} vs {args.workers[0]}"
+                )
         for n in args.tile_scenes:
             peak, rows, store_mib = tiling_peak_rss(args.overrides, n, scratch)
             print(f"tiling {n} scenes: peak RSS {peak:.0f} MiB, {rows} patch rows, store {store_mib:.1f} MiB")

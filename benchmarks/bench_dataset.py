@@ -6,6 +6,7 @@ reads what the build recorded) and reports from each task's manifest:
     python benchmarks/bench_dataset.py                      # the default corpus in .admc
     python benchmarks/bench_dataset.py --set corpus.n_scenes=4 --set run.workdir="'/tmp/bench'"
 """
+
 import argparse
 import time
 from pathlib import Path
@@ -35,9 +36,13 @@ def main() -> None:
     store_bytes = sum(p.stat().st_size for p in result.store.rglob("*") if p.is_file())
     print(f"scenes: {len(result.scenes)}, renders: {len(result.sidecars)}, patch rows: {rows}")
     print(f"this run: {wall:.1f} s wall ({result.executed} tasks run, {result.cached} cached)")
-    print(f"render tasks: {render_seconds:.1f} s ({sampling:.1f} s sampling, {samples / sampling / 1e6:.2f} Msamples/s)")
-    print(f"tile tasks: {tile_seconds:.1f} s, {rows / tile_seconds:.1f} patch rows/s, "
-          f"{100 * tile_seconds / (tile_seconds + render_seconds):.1f}% of the build")
+    print(
+        f"render tasks: {render_seconds:.1f} s ({sampling:.1f} s sampling, {samples / sampling / 1e6:.2f} Msamples/s)"
+    )
+    print(
+        f"tile tasks: {tile_seconds:.1f} s, {rows / tile_seconds:.1f} patch rows/s, "
+        f"{100 * tile_seconds / (tile_seconds + render_seconds):.1f}% of the build"
+    )
     print(f"store: {store_bytes / 2**20:.1f} MiB, {store_bytes / max(rows, 1) / 1024:.1f} KiB per patch row")
 
 

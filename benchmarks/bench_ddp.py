@@ -11,6 +11,7 @@ threads was measured ~30x slower than with one (spinning threads), which is not 
     python benchmarks/bench_ddp.py --nproc 1 2 --batch 8 --window 20 --precision bfloat16
     python benchmarks/bench_ddp.py --device cuda --nproc 1           # one process per GPU the machine has
 """
+
 import argparse
 import csv
 import dataclasses
@@ -25,15 +26,25 @@ from admc.pipeline.config import load_config
 from admc.pipeline.render.variants import use_variant
 from admc.pipeline.stages.dataset import build_dataset
 
-STORE = ["run.scheduler=sync", "render.resolution=[128, 128]", "render.spp=[4]", "render.reference_spp=32",
-         "corpus.n_scenes=6", "tile.patch_size=64", "tile.crops_per_scene=4", "tile.split=[0.5, 0.5, 0.0]"]
+STORE = [
+    "run.scheduler=sync",
+    "render.resolution=[128, 128]",
+    "render.spp=[4]",
+    "render.reference_spp=32",
+    "corpus.n_scenes=6",
+    "tile.patch_size=64",
+    "tile.crops_per_scene=4",
+    "tile.split=[0.5, 0.5, 0.0]",
+]
 
 
 def step_seconds(metrics_csv: Path, step: int, patches_per_step: int) -> float:
     """Seconds per global step over the logging window that ends at `step` (patches_per_s counts every
     batch of every branch)."""
     with metrics_csv.open() as f:
-        rate = next(float(r["value"]) for r in csv.DictReader(f) if r["tag"] == "patches_per_s" and int(r["step"]) == step)
+        rate = next(
+            float(r["value"]) for r in csv.DictReader(f) if r["tag"] == "patches_per_s" and int(r["step"]) == step
+        )
     return patches_per_step / rate
 
 
@@ -52,13 +63,25 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="admc-bench-ddp-") as tmp:
         cfg = load_config(None, [*STORE, *args.overrides, f"run.workdir='{tmp}'"])
         store = build_dataset(cfg, progress=False).store
-        settings = dataclasses.replace(cfg.train, steps=2 * args.window, batch_size=args.batch, val_every=0,
-                                       log_every=args.window, checkpoint_every=2 * args.window, threads=args.threads,
-                                       device=args.device, precision=args.precision, l1_warmup_steps=0,
-                                       critic_only_steps=0, head_tail_start_step=0)
-        print(f"{device.type}, {args.precision}, global batch {args.batch} of {cfg.tile.patch_size}px patches, "
-              f"model channels={cfg.model.channels} blocks={cfg.model.blocks}, adversarial steps "
-              f"(critic + generator, both branches), {args.threads} CPU thread(s) per process")
+        settings = dataclasses.replace(
+            cfg.train,
+            steps=2 * args.window,
+            batch_size=args.batch,
+            val_every=0,
+            log_every=args.window,
+            checkpoint_every=2 * args.window,
+            threads=args.threads,
+            device=args.device,
+            precision=args.precision,
+            l1_warmup_steps=0,
+            critic_only_steps=0,
+            head_tail_start_step=0,
+        )
+        print(
+            f"{device.type}, {args.precision}, global batch {args.batch} of {cfg.tile.patch_size}px patches, "
+            f"model channels={cfg.model.channels} blocks={cfg.model.blocks}, adversarial steps "
+            f"(critic + generator, both branches), {args.threads} CPU thread(s) per process"
+        )
         base = None
         for nproc in args.nproc:
             out = Path(tmp) / f"run{nproc}"
@@ -67,8 +90,10 @@ def main() -> None:
             per_step = args.batch * settings.critic_steps_per_g * len(result.branches)
             seconds = step_seconds(out / "metrics.csv", 2 * args.window, per_step)
             base = base or seconds
-            print(f"{nproc} process(es): {seconds * 1000:.0f} ms per global step, "
-                  f"x{base / seconds:.2f} vs {args.nproc[0]} ({', '.join(result.branches)})")
+            print(
+                f"{nproc} process(es): {seconds * 1000:.0f} ms per global step, "
+                f"x{base / seconds:.2f} vs {args.nproc[0]} ({', '.join(result.branches)})"
+            )
 
 
 if __name__ == "__main__":

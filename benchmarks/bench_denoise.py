@@ -26,6 +26,7 @@ least 8 halos), as `admc-pipe denoise` and eval do; --tile N sets the core edge,
 piece, which on a 2-core CPU is about twice as slow at 1280x720 in torch (whole-image convs leave the
 caches) and within the run-to-run spread of tiles of 640 in OpenVINO (docs/engines.md).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -46,8 +47,13 @@ from admc.model.inference.tiling import receptive_radius
 from admc.model.nets.backbones import build_generator
 from admc.model.precision import PRECISIONS, precision_name
 from admc.pipeline.config import load_config
-from admc.pipeline.evaluation.baselines import (Denoiser, OidnDenoiser, OptixDenoiser, optix_unavailable_reason,
-                                                time_denoiser)
+from admc.pipeline.evaluation.baselines import (
+    Denoiser,
+    OidnDenoiser,
+    OptixDenoiser,
+    optix_unavailable_reason,
+    time_denoiser,
+)
 
 DEFAULTS = load_config()  # configs/default.toml
 SMALL = DEFAULTS.model
@@ -86,8 +92,9 @@ def runs_here(engine: str, precision: str, device: str) -> bool:
     return device == "cpu" and (engine == "openvino" or precision == "float32")
 
 
-def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser],
-          args: argparse.Namespace) -> dict[str, float]:
+def bench(
+    name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoiser], args: argparse.Namespace
+) -> dict[str, float]:
     """Time admc (both branches) in each engine and precision and the baselines, taking turns run by run;
     returns the median total seconds per "engine precision" and per baseline."""
     torch.manual_seed(0)
@@ -95,10 +102,23 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
     height, width = layers["diffuse"].shape[:2]
     tile = max(height, width) if args.tile == 0 else args.tile
     # a copy of the networks per denoiser: it moves them to its memory layout in place
-    denoisers = {f"{e} {p}": FullImageDenoiser(copy.deepcopy(diffuse), copy.deepcopy(specular), DenoiserOptions(device=args.device,
-                                               tile=tile, dtype=PRECISIONS[p], compile=args.compile and e == "torch",
-                                               engine=e, keep_resolved=DEFAULTS.eval.keep_resolved))
-                 for e in args.engines for p in args.precisions if runs_here(e, p, args.device)}
+    denoisers = {
+        f"{e} {p}": FullImageDenoiser(
+            copy.deepcopy(diffuse),
+            copy.deepcopy(specular),
+            DenoiserOptions(
+                device=args.device,
+                tile=tile,
+                dtype=PRECISIONS[p],
+                compile=args.compile and e == "torch",
+                engine=e,
+                keep_resolved=DEFAULTS.eval.keep_resolved,
+            ),
+        )
+        for e in args.engines
+        for p in args.precisions
+        if runs_here(e, p, args.device)
+    }
     for precision, denoiser in denoisers.items():
         first = denoiser(layers).seconds
         for _ in range(args.warmup - 1):
@@ -119,18 +139,27 @@ def bench(name: str, layers: dict[str, np.ndarray], baselines: dict[str, Denoise
         network = statistics.median(r.network_seconds for r in results) * 1e3
         totals[precision] = statistics.median(r.seconds for r in results)
         denoiser = denoisers[precision]
-        print(f"{name:6s} {precision:20s} {width}x{height} tile {denoiser.tile} ({results[0].tiles} per branch, halo "
-              f"{denoiser.overlap}, receptive radius {receptive_radius(diffuse)}): network "
-              f"{network:9.1f} ms/image, total {totals[precision] * 1e3:9.1f} ms/image  "
-              f"[{', '.join(results[0].branches)}]", flush=True)
+        print(
+            f"{name:6s} {precision:20s} {width}x{height} tile {denoiser.tile} ({results[0].tiles} per branch, halo "
+            f"{denoiser.overlap}, receptive radius {receptive_radius(diffuse)}): network "
+            f"{network:9.1f} ms/image, total {totals[precision] * 1e3:9.1f} ms/image  "
+            f"[{', '.join(results[0].branches)}]",
+            flush=True,
+        )
     base = next(iter(totals))
     if len(totals) > 1:
-        print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {totals[base] / s:.2f}x"
-                                                               for p, s in totals.items() if p != base), flush=True)
+        print(
+            f"{name:6s} speed-up over {base}: "
+            + ", ".join(f"{p} {totals[base] / s:.2f}x" for p, s in totals.items() if p != base),
+            flush=True,
+        )
     for b, seconds in baseline_runs.items():
         totals[b] = statistics.median(seconds)
-        print(f"{b:6s} {width}x{height}: total {totals[b] * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
-              f"{name} / {b}: " + ", ".join(f"{p} {totals[p] / totals[b]:.2f}x" for p in denoisers), flush=True)
+        print(
+            f"{b:6s} {width}x{height}: total {totals[b] * 1e3:9.1f} ms/image  [{baselines[b].device}]; "
+            f"{name} / {b}: " + ", ".join(f"{p} {totals[p] / totals[b]:.2f}x" for p in denoisers),
+            flush=True,
+        )
     return totals
 
 
@@ -152,11 +181,17 @@ def main() -> None:
     parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
     parser.add_argument("--engines", nargs="+", default=list(ENGINES), choices=list(ENGINES))
     parser.add_argument("--precisions", nargs="+", default=list(PRECISIONS), choices=list(PRECISIONS))
-    parser.add_argument("--baselines", nargs="*", default=["oidn", "optix"], choices=["oidn", "optix"],
-                        help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)")
+    parser.add_argument(
+        "--baselines",
+        nargs="*",
+        default=["oidn", "optix"],
+        choices=["oidn", "optix"],
+        help="also time these on the same image (OIDN high quality on --device; OptiX on CUDA)",
+    )
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--tile", type=int, default=None,
-                        help="largest tile core edge (default: the denoiser's own); 0: no tiling")
+    parser.add_argument(
+        "--tile", type=int, default=None, help="largest tile core edge (default: the denoiser's own); 0: no tiling"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--warmup", type=int, default=1, help="untimed runs per precision first (>= 1)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
@@ -168,12 +203,13 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.size.lower().split("x"))
     device = torch.device(args.device)
-    where = (torch.cuda.get_device_name(device) if device.type == "cuda"
-             else f"cpu, {torch.get_num_threads()} threads")
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
     engine = resolve_engine(DEFAULTS.eval.engine, device)
     default = f"{engine} {precision_name(default_precision(engine, device))}"
-    print(f"torch {torch.__version__} on {where}; denoiser default here: {default}"
-          f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up")
+    print(
+        f"torch {torch.__version__} on {where}; denoiser default here: {default}"
+        f"{'; compiled' if args.compile else ''}; median of {args.repeats} after {args.warmup} warm-up"
+    )
     layers = synthetic_layers(height, width)
     baselines = make_baselines(args.baselines, args.device, width, height)
     ratios = {}
@@ -183,6 +219,7 @@ def main() -> None:
             ratios[RATIO_LINES[name]] = totals[default] / totals["oidn"]
     for label, ratio in ratios.items():  # the default model and engine against OIDN high in this same run
         print(f"{label} time ratio: {ratio:.2f}  ({default}, {width}x{height})")
+
 
 if __name__ == "__main__":
     main()

@@ -6,6 +6,7 @@ alternating between the two. CPU time is printed too: on a shared machine it is 
 
     .venv/bin/python benchmarks/bench_integrator.py --size 128 --spp 64 --variant auto
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,8 +22,12 @@ def glossy_cornell_box(mi, size: int):
     scene = mi.cornell_box()
     scene.pop("integrator")
     scene["sensor"]["film"] = {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}
-    scene["glossy-sphere"] = {"type": "sphere", "center": [0.35, -0.55, 0.3], "radius": 0.3,
-                              "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": 0.15}}
+    scene["glossy-sphere"] = {
+        "type": "sphere",
+        "center": [0.35, -0.55, 0.3],
+        "radius": 0.3,
+        "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": 0.15},
+    }
     return mi.load_dict(scene)
 
 
@@ -67,14 +72,21 @@ def main() -> None:
         render_buffers(scene, args.spp, seed, split=True, max_depth=args.max_depth)
 
     timings = interleaved_timings({"path": render_path, "admc_split": render_admc}, args.repeats)
-    print(f"variant {variant}, {args.size}x{args.size}, {args.spp} spp, max_depth {args.max_depth}, "
-          f"median of {args.repeats} interleaved renders")
+    print(
+        f"variant {variant}, {args.size}x{args.size}, {args.spp} spp, max_depth {args.max_depth}, "
+        f"median of {args.repeats} interleaved renders"
+    )
     for name, (wall, cpu) in timings.items():
-        print(f"{name:10s} {samples / wall / 1e6:6.2f} M samples/s wall ({wall * 1e3:7.1f} ms), "
-              f"{samples / cpu / 1e6:6.2f} M samples/s per CPU-second ({cpu * 1e3:7.1f} ms CPU)")
+        print(
+            f"{name:10s} {samples / wall / 1e6:6.2f} M samples/s wall ({wall * 1e3:7.1f} ms), "
+            f"{samples / cpu / 1e6:6.2f} M samples/s per CPU-second ({cpu * 1e3:7.1f} ms CPU)"
+        )
     (path_wall, path_cpu), (admc_wall, admc_cpu) = timings["path"], timings["admc_split"]
-    print(f"ratio admc_split / path (samples/s): wall {path_wall / admc_wall:.2f}x, CPU {path_cpu / admc_cpu:.2f}x "
-          "(admc_split includes all buffers, variance and the NumPy assembly)")
+    print(
+        f"ratio admc_split / path (samples/s): wall {path_wall / admc_wall:.2f}x, CPU {path_cpu / admc_cpu:.2f}x "
+        "(admc_split includes all buffers, variance and the NumPy assembly)"
+    )
+
 
 if __name__ == "__main__":
     main()

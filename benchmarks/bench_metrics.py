@@ -7,6 +7,7 @@ The pair is a noisy HDR image against its reference (gamma-distributed radiance 
 metrics' cost does not depend on the content, except HDR-FLIP's, which runs one LDR-FLIP per exposure
 of the reference's range (4 here, as on the rendered test scenes).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,10 @@ def main() -> None:
     print(f"{width}x{height}, median of {args.repeats}")
     for m in METRICS:
         c = statistics.median(cpu[m.key])
-        print(f"  {m.label:9s} wall {statistics.median(wall[m.key]):8.4f} s  cpu {c:8.4f} s  "
-              f"({c / base:6.1f}x 1-SSIM's cpu)")
+        print(
+            f"  {m.label:9s} wall {statistics.median(wall[m.key]):8.4f} s  cpu {c:8.4f} s  "
+            f"({c / base:6.1f}x 1-SSIM's cpu)"
+        )
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@
 
 Times are medians over `--repeats` runs after one warm-up; CUDA timings are synchronised.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,8 +50,10 @@ def print_parameter_counts() -> None:
     for name, model in MODELS.items():
         g = Generator(model)
         critic = Critic(model, PATCH_SIZES[name])
-        print(f"  {name:6s} generator {count(g):>11,d}  (encoder {count(g.encoder):,d})   critic {count(critic):>11,d}  "
-              f"(critic_channels={model.critic_channels}, critic_norm={model.critic_norm!r}, patch {PATCH_SIZES[name]})")
+        print(
+            f"  {name:6s} generator {count(g):>11,d}  (encoder {count(g.encoder):,d})   critic {count(critic):>11,d}  "
+            f"(critic_channels={model.critic_channels}, critic_norm={model.critic_norm!r}, patch {PATCH_SIZES[name]})"
+        )
     for mode in ("none", "concat", "shift", "scale"):
         print(f"  paper generator, mode {mode:6s}: {count(Generator(ModelSettings(mode=mode))):>11,d}")
 
@@ -91,8 +94,10 @@ def bench_training(device: torch.device, repeats: int, name: str = "small", batc
         opt_g.step()
 
     seconds = median_seconds(step, device, repeats)
-    print(f"  train step G+D+GP, {name} config, batch {batch} @ {size}x{size}: {seconds * 1e3:8.1f} ms "
-          f"= {batch / seconds:7.1f} patches/s")
+    print(
+        f"  train step G+D+GP, {name} config, batch {batch} @ {size}x{size}: {seconds * 1e3:8.1f} ms "
+        f"= {batch / seconds:7.1f} patches/s"
+    )
 
 
 def main() -> None:

@@ -5,6 +5,7 @@ compression ratios are meaningful; uniform noise would not compress at all.
 
     .venv/bin/python benchmarks/bench_patch_store.py --rows 512 --scenes 4
 """
+
 from __future__ import annotations
 
 import argparse
@@ -66,8 +67,13 @@ def main() -> None:
 
     start = time.perf_counter()
     for scene_id, arrays in scenes.items():
-        P.write_scene(path, "train", scene_id, arrays,
-                      {"scene_hash": scene_id, "image_size": [crops * PATCH, PATCH], "sanitization": {}})
+        P.write_scene(
+            path,
+            "train",
+            scene_id,
+            arrays,
+            {"scene_hash": scene_id, "image_size": [crops * PATCH, PATCH], "sanitization": {}},
+        )
     write_s = time.perf_counter() - start
 
     disk = sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
@@ -82,14 +88,19 @@ def main() -> None:
     lat = np.asarray(latencies)
 
     print(f"store: {path}")
-    print(f"rows: {rows} ({args.scenes} scenes x {crops} crops x {len(SPP_LEVELS)} spp levels), "
-          f"specular: {specular}")
-    print(f"write: {write_s:.2f} s, {rows / write_s:.0f} rows/s, {raw / write_s / 1e6:.0f} MB/s of FP16 input "
-          "(one writer, fsync included)")
-    print(f"disk: {disk / 1e6:.1f} MB, {disk / rows / 1e3:.1f} kB per row (FP16 raw {raw / rows / 1e3:.1f} kB, "
-          f"ratio {raw / disk:.2f})")
-    print(f"random row read (noisy + features + reference, {args.reads} reads): median {np.median(lat):.2f} ms, "
-          f"p95 {np.percentile(lat, 95):.2f} ms, mean {lat.mean():.2f} ms")
+    print(f"rows: {rows} ({args.scenes} scenes x {crops} crops x {len(SPP_LEVELS)} spp levels), specular: {specular}")
+    print(
+        f"write: {write_s:.2f} s, {rows / write_s:.0f} rows/s, {raw / write_s / 1e6:.0f} MB/s of FP16 input "
+        "(one writer, fsync included)"
+    )
+    print(
+        f"disk: {disk / 1e6:.1f} MB, {disk / rows / 1e3:.1f} kB per row (FP16 raw {raw / rows / 1e3:.1f} kB, "
+        f"ratio {raw / disk:.2f})"
+    )
+    print(
+        f"random row read (noisy + features + reference, {args.reads} reads): median {np.median(lat):.2f} ms, "
+        f"p95 {np.percentile(lat, 95):.2f} ms, mean {lat.mean():.2f} ms"
+    )
 
 
 if __name__ == "__main__":

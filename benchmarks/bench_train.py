@@ -18,6 +18,7 @@ critic (train.adversarial = false), the way the shipped weights' last runs train
 SSIM term of the loss (train.ssim_weight). Timings are
 synchronised on CUDA.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,9 +34,11 @@ from admc.pipeline.config import load_config
 
 
 def make_batch(batch_size: int, patch: int) -> dict[str, torch.Tensor]:
-    return {"noisy": torch.rand(batch_size, 3, patch, patch) * 2,
-            "features": torch.rand(batch_size, 7, patch, patch),
-            "reference": torch.rand(batch_size, 3, patch, patch)}
+    return {
+        "noisy": torch.rand(batch_size, 3, patch, patch) * 2,
+        "features": torch.rand(batch_size, 7, patch, patch),
+        "reference": torch.rand(batch_size, 3, patch, patch),
+    }
 
 
 def timed_step(trainer: BranchTrainer, batch: dict[str, torch.Tensor], device: torch.device) -> float:
@@ -73,15 +76,23 @@ CONFIGS = {"small": small_settings, "paper": paper_settings, "small-unet": small
 
 def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
     model, train = CONFIGS[name]()
-    train = replace(train, batch_size=args.batch_size or train.batch_size, l1_warmup_steps=0, critic_only_steps=0,
-                    critic_steps_per_g=1, head_tail_start_step=0, adversarial=not args.l1_only,
-                    ssim_weight=args.ssim_weight)
+    train = replace(
+        train,
+        batch_size=args.batch_size or train.batch_size,
+        l1_warmup_steps=0,
+        critic_only_steps=0,
+        critic_steps_per_g=1,
+        head_tail_start_step=0,
+        adversarial=not args.l1_only,
+        ssim_weight=args.ssim_weight,
+    )
     batch = make_batch(train.batch_size, args.patch_size)
     trainers = {}
     for precision in args.precisions:
         torch.manual_seed(0)
-        trainers[precision] = BranchTrainer("diffuse", model, replace(train, precision=precision),
-                                            args.patch_size, device)
+        trainers[precision] = BranchTrainer(
+            "diffuse", model, replace(train, precision=precision), args.patch_size, device
+        )
         if args.compile:
             trainers[precision].generator = torch.compile(trainers[precision].generator)
         try:
@@ -89,8 +100,10 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
         except Exception as error:  # torch.compile fails in many exception types
             if not args.compile:
                 raise
-            raise SystemExit(f"{name} {precision}: torch {torch.__version__} could not compile the training step: "
-                             f"{type(error).__name__}: {str(error).splitlines()[0]}") from None
+            raise SystemExit(
+                f"{name} {precision}: torch {torch.__version__} could not compile the training step: "
+                f"{type(error).__name__}: {str(error).splitlines()[0]}"
+            ) from None
         for _ in range(args.warmup - 1):
             timed_step(trainers[precision], batch, device)
         if args.compile:
@@ -102,12 +115,18 @@ def bench(name: str, device: torch.device, args: argparse.Namespace) -> None:
     medians = {p: statistics.median(t) for p, t in times.items()}
     step = ("G, L1 only" if args.l1_only else "G + critic + GP") + (" + SSIM" if args.ssim_weight else "")
     for precision, seconds in medians.items():
-        print(f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
-              f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
-              f"({step}, {device}{', compiled G' if args.compile else ''})", flush=True)
+        print(
+            f"{name:6s} {precision:8s} batch {train.batch_size:3d} patch {args.patch_size:4d}: "
+            f"{seconds * 1e3:9.1f} ms/step  {train.batch_size / seconds:8.3g} patches/s per branch  "
+            f"({step}, {device}{', compiled G' if args.compile else ''})",
+            flush=True,
+        )
     base = args.precisions[0]
-    print(f"{name:6s} speed-up over {base}: " + ", ".join(f"{p} {medians[base] / s:.2f}x"
-                                                           for p, s in medians.items() if p != base), flush=True)
+    print(
+        f"{name:6s} speed-up over {base}: "
+        + ", ".join(f"{p} {medians[base] / s:.2f}x" for p, s in medians.items() if p != base),
+        flush=True,
+    )
 
 
 def main() -> None:
@@ -129,8 +148,10 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads; median of {args.steps} interleaved "
-          f"steps after {args.warmup} warm-up")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads; median of {args.steps} interleaved "
+        f"steps after {args.warmup} warm-up"
+    )
     for name in args.configs:
         bench(name, device, args)
 

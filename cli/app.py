@@ -1,4 +1,5 @@
 """`admc-pipe`: the command line. Thin: parse, call pipeline functions, print."""
+
 from __future__ import annotations
 
 import functools
@@ -17,13 +18,21 @@ from admc.common.layout import ENGINE_CHOICES, ENSEMBLES
 from admc.errors import AdmcError, user_os_error
 from admc.pipeline import config as config_mod
 
-app = typer.Typer(help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+app = typer.Typer(
+    help="admc: render a scene corpus, train an adversarial Monte Carlo denoiser, evaluate it.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
 console = Console(soft_wrap=True)  # long paths and Markdown rows stay whole lines in logs and pipes
 err = Console(stderr=True, soft_wrap=True)
 
-ConfigOpt = Annotated[Optional[Path], typer.Option("--config", "-c", help="TOML config overlaying configs/default.toml.")]
-SetOpt = Annotated[Optional[list[str]], typer.Option("--set", "-s", help="Override a value: section.key=value (repeatable).")]
+ConfigOpt = Annotated[
+    Optional[Path], typer.Option("--config", "-c", help="TOML config overlaying configs/default.toml.")
+]
+SetOpt = Annotated[
+    Optional[list[str]], typer.Option("--set", "-s", help="Override a value: section.key=value (repeatable).")
+]
 SchedulerOpt = Annotated[Optional[str], typer.Option(help="sync | threads | processes | a dask scheduler address.")]
 
 
@@ -31,6 +40,7 @@ def _user_errors(fn):
     """A user-fixable failure (any admc.errors.AdmcError, or a file system that refuses a write: see
     user_os_error) prints its one message and exits 2; anything else is a bug and keeps its traceback.
     ADMC_DEBUG=1 shows the traceback of user errors too."""
+
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
@@ -41,6 +51,7 @@ def _user_errors(fn):
                 raise
             err.print(Text.assemble(("error: ", "bold red"), message))
             raise typer.Exit(2)
+
     return wrapper
 
 
@@ -68,9 +79,14 @@ def render(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOp
         table.add_column(column)
     for s in result.sidecars:
         bad = sum(sum(counts.values()) for counts in s["nonfinite"].values())
-        table.add_row(s["scene_id"], f"{s['spp']}{' (ref)' if s['reference'] else ''}",
-                      "yes" if s["has_specular"] else "no (skipped)", f"{s['render_seconds']:.2f}",
-                      f"{s['samples_per_second'] / 1e6:.2f}", str(bad))
+        table.add_row(
+            s["scene_id"],
+            f"{s['spp']}{' (ref)' if s['reference'] else ''}",
+            "yes" if s["has_specular"] else "no (skipped)",
+            f"{s['render_seconds']:.2f}",
+            f"{s['samples_per_second'] / 1e6:.2f}",
+            str(bad),
+        )
     console.print(table)
     no_spec = sorted({s["scene_id"] for s in result.sidecars if not s["has_specular"]})
     if no_spec:
@@ -90,8 +106,9 @@ def _print_dataset(result, workdir: str) -> None:
         table.add_column(column)
     for split, entry in summary["splits"].items():
         per_spp = ", ".join(f"{spp}: {n}" for spp, n in sorted(entry["rows_per_spp"].items()))
-        table.add_row(split, str(len(entry["scenes"])), str(entry["rows"]["diffuse"]),
-                      str(entry["rows"]["specular"]), per_spp)
+        table.add_row(
+            split, str(len(entry["scenes"])), str(entry["rows"]["diffuse"]), str(entry["rows"]["specular"]), per_spp
+        )
     console.print(table)
     ranges = Table(title="stored value ranges (transformed, all splits)")
     for column in ("array", "min", "max"):
@@ -116,8 +133,12 @@ def _print_dataset(result, workdir: str) -> None:
 
 @app.command()
 @_user_errors
-def dataset(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
-            summary: Annotated[bool, typer.Option("--summary", help="Only summarise the existing store.")] = False) -> None:
+def dataset(
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    summary: Annotated[bool, typer.Option("--summary", help="Only summarise the existing store.")] = False,
+) -> None:
     """Render + tile as one graph: the corpus into the 128x128 FP16 Zarr patch store (cached, incremental)."""
     cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.dataset import build_dataset, existing_dataset
@@ -147,16 +168,36 @@ class Stage(str, Enum):
 
 @app.command()
 @_user_errors
-def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
-          stage: Annotated[Stage, typer.Option(help="pretrain on the corpus, or finetune from pretrained weights.")] = Stage.pretrain,
-          init: Annotated[Optional[Path], typer.Option(help="finetune from this checkpoint or weights file "
-                                                            "(default: the shipped weights matching the model config).")] = None,
-          restart: Annotated[bool, typer.Option("--restart", help="discard this stage's existing run and start over.")] = False,
-          nproc: Annotated[int, typer.Option(min=1, help="data-parallel training in N processes on this machine (one per GPU, "
-                                                         "or sharing the CPU); under torchrun leave it out.")] = 1) -> None:
+def train(
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    stage: Annotated[
+        Stage, typer.Option(help="pretrain on the corpus, or finetune from pretrained weights.")
+    ] = Stage.pretrain,
+    init: Annotated[
+        Optional[Path],
+        typer.Option(
+            help="finetune from this checkpoint or weights file "
+            "(default: the shipped weights matching the model config)."
+        ),
+    ] = None,
+    restart: Annotated[
+        bool, typer.Option("--restart", help="discard this stage's existing run and start over.")
+    ] = False,
+    nproc: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            help="data-parallel training in N processes on this machine (one per GPU, "
+            "or sharing the CPU); under torchrun leave it out.",
+        ),
+    ] = 1,
+) -> None:
     """Train the CFM generator and WGAN-GP critic of both branches (builds the patch store first if needed).
 
-    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps or train.minutes to train longer).
+    An interrupted or shorter run resumes exactly from its checkpoint (raise train.steps or train.minutes
+    to train longer).
     Several processes (--nproc N, or `torchrun --nproc_per_node N -m admc.cli train ...`) split each batch."""
     cfg = _load(config, set_, scheduler)
     from admc.pipeline.stages.train import interrupted_note, run_training
@@ -173,10 +214,15 @@ def train(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
     if result.last_losses:
         console.print(_train_table(stage.value, result))
     else:  # the checkpoint already held every step: say so rather than print an empty table
-        chosen = ", ".join(f"{b} step {s['step']} (" + ", ".join(f"{k} {v:.4g}" for k, v in s.items() if k != "step") + ")"
-                           for b, s in result.selected.items())
-        console.print(f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps or "
-                      f"train.minutes to train longer)" + (f"; the weights hold {chosen}" if chosen else ""), markup=False)
+        chosen = ", ".join(
+            f"{b} step {s['step']} (" + ", ".join(f"{k} {v:.4g}" for k, v in s.items() if k != "step") + ")"
+            for b, s in result.selected.items()
+        )
+        console.print(
+            f"{stage.value}: complete at step {result.step}, nothing to train (raise train.steps or "
+            f"train.minutes to train longer)" + (f"; the weights hold {chosen}" if chosen else ""),
+            markup=False,
+        )
     if result.skipped_branches:
         console.print(f"skipped branches (no patches): {', '.join(result.skipped_branches)}")
     console.print(f"checkpoint: {result.checkpoint}\nweights: {result.weights}\nlogs: {result.out_dir}")
@@ -194,47 +240,101 @@ def _train_table(stage: str, result) -> Table:
     return table
 
 
-WeightsOpt = Annotated[Optional[Path], typer.Option(
-    help="Weights or checkpoint (default: this config's finetune, else pretrain run, else the shipped weights).")]
+WeightsOpt = Annotated[
+    Optional[Path],
+    typer.Option(
+        help="Weights or checkpoint (default: this config's finetune, else pretrain run, else the shipped weights)."
+    ),
+]
 DeviceOpt = Annotated[str, typer.Option(help="auto | cpu | cuda")]
 
 
 @app.command()
 @_user_errors
-def denoise(inputs: Annotated[list[Path], typer.Argument(help="EXR(s): admc's, Blender's, pbrt-v4's or Mitsuba's "
-                                                         "layers, or OIDN-style NAME.hdr.exr (+ NAME.alb.exr, "
-                                                         "NAME.nrm.exr).")],
-            output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Output EXR (one input only; "
-                                                           "default: INPUT.denoised.exr beside it).")] = None,
-            weights: WeightsOpt = None, device: DeviceOpt = "auto",
-            tile: Annotated[Optional[int], typer.Option(min=1, help="Tile size in pixels (bounds memory; in float32 "
-                                                                    "the result is the same at any size, in bf16 "
-                                                                    "within its rounding). Default: 320 on a CPU (640 in "
-                                                                    "OpenVINO), 512 on a GPU, at least 8 "
-                                                                    "halos.")] = None,
-            ensemble: Annotated[int, typer.Option(help="Average the networks over 1, 2, 4 or 8 flips/transposes "
-                                                       "of the input: less error, that many times the time.")] = 1,
-            dark_pass: Annotated[bool, typer.Option(help="Denoise dark regions again at 64x the exposure and take "
-                                                         "them from there (Table 1's admc-ens4+dark row): up to twice the "
-                                                         "time.")] = False,
-            engine: Annotated[Optional[str], typer.Option(help="What runs the networks: auto (openvino on a CPU, "
-                                                               "torch on a GPU) | torch | onnxruntime | openvino "
-                                                               "(docs/engines.md). Default: the config's "
-                                                               "eval.engine.")] = None,
-            layers: Annotated[Optional[list[str]], typer.Option(
-                "--layers", help="Where admc's layers are in a file it does not recognise: ROLE=LAYER or "
-                                 "ROLE=CH1,CH2,CH3 (repeatable; roles: colour, diffuse, specular, albedo, normal, "
-                                 "depth, diffuse_var, specular_var), or a .toml file of them.")] = None,
-            normal_space: Annotated[str, typer.Option(
-                help="The normals' frame: auto (known from the renderer, else detected) | camera | world (needs a "
-                     "camera matrix).")] = "auto",
-            world_to_camera: Annotated[Optional[str], typer.Option(
-                help="The camera for world-space normals: the renderer's world-to-camera matrix, 16 numbers row by "
-                     "row (docs/usage.md says how to print it in Blender and Mitsuba).")] = None,
-            oidn_blend: Annotated[bool, typer.Option(help="Blend with OIDN's output at the shares fine-tuned weights "
-                                                          "ship (train.oidn_blend); --no-oidn-blend: the networks' "
-                                                          "output alone.")] = True,
-            config: ConfigOpt = None, set_: SetOpt = None) -> None:
+def denoise(
+    inputs: Annotated[
+        list[Path],
+        typer.Argument(
+            help="EXR(s): admc's, Blender's, pbrt-v4's or Mitsuba's "
+            "layers, or OIDN-style NAME.hdr.exr (+ NAME.alb.exr, "
+            "NAME.nrm.exr)."
+        ),
+    ],
+    output: Annotated[
+        Optional[Path],
+        typer.Option("--output", "-o", help="Output EXR (one input only; default: INPUT.denoised.exr beside it)."),
+    ] = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = "auto",
+    tile: Annotated[
+        Optional[int],
+        typer.Option(
+            min=1,
+            help="Tile size in pixels (bounds memory; in float32 "
+            "the result is the same at any size, in bf16 "
+            "within its rounding). Default: 320 on a CPU (640 in "
+            "OpenVINO), 512 on a GPU, at least 8 "
+            "halos.",
+        ),
+    ] = None,
+    ensemble: Annotated[
+        int,
+        typer.Option(
+            help="Average the networks over 1, 2, 4 or 8 flips/transposes "
+            "of the input: less error, that many times the time."
+        ),
+    ] = 1,
+    dark_pass: Annotated[
+        bool,
+        typer.Option(
+            help="Denoise dark regions again at 64x the exposure and take "
+            "them from there (Table 1's admc-ens4+dark row): up to twice the "
+            "time."
+        ),
+    ] = False,
+    engine: Annotated[
+        Optional[str],
+        typer.Option(
+            help="What runs the networks: auto (openvino on a CPU, "
+            "torch on a GPU) | torch | onnxruntime | openvino "
+            "(docs/engines.md). Default: the config's "
+            "eval.engine."
+        ),
+    ] = None,
+    layers: Annotated[
+        Optional[list[str]],
+        typer.Option(
+            "--layers",
+            help="Where admc's layers are in a file it does not recognise: ROLE=LAYER or "
+            "ROLE=CH1,CH2,CH3 (repeatable; roles: colour, diffuse, specular, albedo, normal, "
+            "depth, diffuse_var, specular_var), or a .toml file of them.",
+        ),
+    ] = None,
+    normal_space: Annotated[
+        str,
+        typer.Option(
+            help="The normals' frame: auto (known from the renderer, else detected) | camera | world (needs a "
+            "camera matrix)."
+        ),
+    ] = "auto",
+    world_to_camera: Annotated[
+        Optional[str],
+        typer.Option(
+            help="The camera for world-space normals: the renderer's world-to-camera matrix, 16 numbers row by "
+            "row (docs/usage.md says how to print it in Blender and Mitsuba)."
+        ),
+    ] = None,
+    oidn_blend: Annotated[
+        bool,
+        typer.Option(
+            help="Blend with OIDN's output at the shares fine-tuned weights "
+            "ship (train.oidn_blend); --no-oidn-blend: the networks' "
+            "output alone."
+        ),
+    ] = True,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
     """Denoise your own EXR renders (admc's, Blender's, pbrt-v4's, Mitsuba's, OIDN file sets): the final image
     plus the denoised diffuse and specular layers."""
     from admc.pipeline.stages.denoise import DenoiseInputError, check_output_path, load_denoise_input, output_paths
@@ -260,17 +360,29 @@ def denoise(inputs: Annotated[list[Path], typer.Argument(help="EXR(s): admc's, B
                 from admc.pipeline.weights import load_model
                 from admc.model.inference.options import DenoiserOptions
 
-                model = load_model(cfg, weights, DenoiserOptions(
-                    device=device, tile=tile, ensemble=ensemble, dark_pass=dark_pass,
-                    engine=engine or cfg.eval.engine, keep_resolved=cfg.eval.keep_resolved), oidn_blend=oidn_blend)
+                model = load_model(
+                    cfg,
+                    weights,
+                    DenoiserOptions(
+                        device=device,
+                        tile=tile,
+                        ensemble=ensemble,
+                        dark_pass=dark_pass,
+                        engine=engine or cfg.eval.engine,
+                        keep_resolved=cfg.eval.keep_resolved,
+                    ),
+                    oidn_blend=oidn_blend,
+                )
                 console.print(f"weights: {model.source} ({model.name})", markup=False)
             missing = model.missing_layers(source.layers)
             if missing:
-                raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)}, which the weights "
-                                        f"{model.source} read (model.noise_input: the variance of each pixel's "
-                                        "mean, as `admc-pipe render` writes in its multi-layer EXRs); without "
-                                        "it, use weights without that input (--set model.noise_input=false "
-                                        "picks the shipped ones)")
+                raise DenoiseInputError(
+                    f"{path}: lacks layer(s) {', '.join(missing)}, which the weights "
+                    f"{model.source} read (model.noise_input: the variance of each pixel's "
+                    "mean, as `admc-pipe render` writes in its multi-layer EXRs); without "
+                    "it, use weights without that input (--set model.noise_input=false "
+                    "picks the shipped ones)"
+                )
             _denoise_one(model, path, source, target)
         except (DenoiseInputError, ExrError, LayerMapError, NormalSpaceError, OSError) as exc:  # this input's fault:
             if len(inputs) == 1 or _input_failure(exc) is None:  # the others still get denoised
@@ -290,8 +402,9 @@ def _denoise_one(model, path: Path, source, target: Path) -> None:
     write_denoised(target, result, source=source)
     for note in source.notes + result.notes:
         console.print(f"  {note}", markup=False)
-    console.print(f"{path} -> {target}  ({'+'.join(result.branches)}, {result.seconds:.2f} s on {model.device})",
-                  markup=False)
+    console.print(
+        f"{path} -> {target}  ({'+'.join(result.branches)}, {result.seconds:.2f} s on {model.device})", markup=False
+    )
 
 
 def _input_failure(exc: Exception) -> str | None:
@@ -310,13 +423,22 @@ def _batch_summary(failed: list[tuple[Path, str]], written: list[Path], total: i
 
 @app.command("eval")
 @_user_errors
-def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt = None,
-          weights: Annotated[Optional[list[str]], typer.Option(
-              help="Weights or checkpoint: PATH or NAME=PATH, repeatable to compare checkpoints or ablations in "
-                   "one table (default: this config's finetune, else pretrain run, else the shipped weights).")] = None,
-          device: DeviceOpt = "auto",
-          no_model: Annotated[bool, typer.Option("--no-model", help="Leave this model out (noisy input, OIDN, "
-                                                 "and OptiX where CUDA runs).")] = False) -> None:
+def eval_(
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    scheduler: SchedulerOpt = None,
+    weights: Annotated[
+        Optional[list[str]],
+        typer.Option(
+            help="Weights or checkpoint: PATH or NAME=PATH, repeatable to compare checkpoints or ablations in "
+            "one table (default: this config's finetune, else pretrain run, else the shipped weights)."
+        ),
+    ] = None,
+    device: DeviceOpt = "auto",
+    no_model: Annotated[
+        bool, typer.Option("--no-model", help="Leave this model out (noisy input, OIDN, and OptiX where CUDA runs).")
+    ] = False,
+) -> None:
     """Table 1 on the test split's full images (noisy input, OIDN, OptiX where CUDA runs, this model), error vs
     time, an HTML page."""
     cfg = _load(config, set_, scheduler)
@@ -336,9 +458,15 @@ def eval_(config: ConfigOpt = None, set_: SetOpt = None, scheduler: SchedulerOpt
 
 @app.command()
 @_user_errors
-def export(weights: Annotated[Path, typer.Argument(help="Weights or checkpoint file to export.")],
-           out_dir: Annotated[Path, typer.Option("--output", "-o", help="Folder for {branch}.onnx and admc.json "
-                                                 "(created; other files in it are kept).")]) -> None:
+def export(
+    weights: Annotated[Path, typer.Argument(help="Weights or checkpoint file to export.")],
+    out_dir: Annotated[
+        Path,
+        typer.Option(
+            "--output", "-o", help="Folder for {branch}.onnx and admc.json (created; other files in it are kept)."
+        ),
+    ],
+) -> None:
     """Both branches' generators as ONNX graphs (dynamic height and width) and admc.json, what runs around
     them: to run admc in a renderer without Python (docs/engines.md)."""
     from admc.pipeline.stages.export import export_onnx
@@ -349,9 +477,12 @@ def export(weights: Annotated[Path, typer.Argument(help="Weights or checkpoint f
 
 @app.command()
 @_user_errors
-def cache(config: ConfigOpt = None, set_: SetOpt = None,
-          clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
-          stage: Annotated[Optional[str], typer.Option(help="Only this stage: render or tile.")] = None) -> None:
+def cache(
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    clear: Annotated[bool, typer.Option("--clear", help="Remove cached outputs.")] = False,
+    stage: Annotated[Optional[str], typer.Option(help="Only this stage: render or tile.")] = None,
+) -> None:
     """Show what is cached (per stage: entries and size), or clear it."""
     cfg = _load(config, set_)
     from admc.pipeline.stages.corpus import check_cached_stage, open_cache
@@ -360,8 +491,10 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
     store = open_cache(cfg)
     if clear:
         removed = store.clear(stage)
-        console.print(f"removed {removed} cached entr{'y' if removed == 1 else 'ies'} from {store.root}"
-                      f"{f' (stage {stage})' if stage else ''}")
+        console.print(
+            f"removed {removed} cached entr{'y' if removed == 1 else 'ies'} from {store.root}"
+            f"{f' (stage {stage})' if stage else ''}"
+        )
         return
     entries = [e for e in store.entries() if stage is None or e["stage"] == stage]
     table = Table(title=f"cache at {store.root}")
@@ -369,8 +502,9 @@ def cache(config: ConfigOpt = None, set_: SetOpt = None,
         table.add_column(column)
     for name in sorted({e["stage"] for e in entries}):
         rows = [e for e in entries if e["stage"] == name]
-        table.add_row(name, str(len(rows)), f"{sum(e['bytes'] for e in rows) / 2**20:.1f}",
-                      max(str(e["created"]) for e in rows))
+        table.add_row(
+            name, str(len(rows)), f"{sum(e['bytes'] for e in rows) / 2**20:.1f}", max(str(e["created"]) for e in rows)
+        )
     console.print(table if entries else f"cache at {store.root} is empty")
 
 

@@ -13,6 +13,7 @@ albedo.R, normal.X, depth.Z, coverage.A; diffuse_var.R and specular_var.R if the
 Output: the image as R, G, B and the denoised diffuse.* and specular.* layers, float32. admc's optional
 extras (the self-ensemble, the dark pass) are left out, as `denoise` leaves them out by default.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,8 +26,16 @@ import onnxruntime
 import OpenEXR
 from scipy.ndimage import uniform_filter
 
-CHANNELS = {"diffuse": "RGB", "specular": "RGB", "albedo": "RGB", "normal": "XYZ", "depth": "Z", "coverage": "A",
-            "diffuse_var": "RGB", "specular_var": "RGB"}
+CHANNELS = {
+    "diffuse": "RGB",
+    "specular": "RGB",
+    "albedo": "RGB",
+    "normal": "XYZ",
+    "depth": "Z",
+    "coverage": "A",
+    "diffuse_var": "RGB",
+    "specular_var": "RGB",
+}
 REQUIRED = ("diffuse", "albedo", "normal")
 
 
@@ -35,8 +44,11 @@ def read_layers(path: Path) -> dict[str, np.ndarray]:
     if not Path(path).is_file():
         raise ValueError(f"{path}: no such file")
     pixels = OpenEXR.File(str(path), separate_channels=True).channels()
-    layers = {name: np.stack([pixels[f"{name}.{c}"].pixels.astype(np.float32) for c in channels], axis=-1)
-              for name, channels in CHANNELS.items() if all(f"{name}.{c}" in pixels for c in channels)}
+    layers = {
+        name: np.stack([pixels[f"{name}.{c}"].pixels.astype(np.float32) for c in channels], axis=-1)
+        for name, channels in CHANNELS.items()
+        if all(f"{name}.{c}" in pixels for c in channels)
+    }
     missing = [name for name in REQUIRED if name not in layers]
     if missing:
         raise ValueError(f"{path}: lacks layer(s) {', '.join(missing)}")
@@ -45,8 +57,11 @@ def read_layers(path: Path) -> dict[str, np.ndarray]:
 
 def write_image(path: Path, planes: dict[str, np.ndarray]) -> None:
     """`planes` ("" for the image itself) as float32 R, G, B channels."""
-    channels = {(f"{name}.{c}" if name else c): np.ascontiguousarray(image[..., i], dtype=np.float32)
-                for name, image in planes.items() for i, c in enumerate("RGB")}
+    channels = {
+        (f"{name}.{c}" if name else c): np.ascontiguousarray(image[..., i], dtype=np.float32)
+        for name, image in planes.items()
+        for i, c in enumerate("RGB")
+    }
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
 
 
@@ -68,9 +83,10 @@ class ExportedAdmc:
         self.spec = json.loads(manifest.read_text())
         if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 3:
             raise ValueError(f"{manifest}: not an admc-onnx export of version 3 (export it again with this admc)")
-        self.sessions = {branch: onnxruntime.InferenceSession(str(Path(folder) / graph),
-                                                              providers=["CPUExecutionProvider"])
-                         for branch, graph in self.spec["graphs"].items()}
+        self.sessions = {
+            branch: onnxruntime.InferenceSession(str(Path(folder) / graph), providers=["CPUExecutionProvider"])
+            for branch, graph in self.spec["graphs"].items()
+        }
 
     def __call__(self, layers: dict[str, np.ndarray], tile: int = 320) -> dict[str, np.ndarray]:
         """The image ("") and the denoised branches of one render's layers, linear HDR (H, W, 3)."""
@@ -80,10 +96,16 @@ class ExportedAdmc:
         for name, value in spec["missing"].items():
             if name != "rule" and name not in layers:
                 layers = {**layers, name: np.full((height, width, 1), value, np.float32)}
-        clean = {name: sanitize(layers[name], transform["sanitize"][name]) for name in transform["sanitize"]
-                 if name in layers}
-        variance = {branch: sanitize(layers[name], spec["variance"]["sanitize"])
-                    for branch, name in spec["variance"]["layers"].items() if name in layers and branch in clean}
+        clean = {
+            name: sanitize(layers[name], transform["sanitize"][name])
+            for name in transform["sanitize"]
+            if name in layers
+        }
+        variance = {
+            branch: sanitize(layers[name], spec["variance"]["sanitize"])
+            for branch, name in spec["variance"]["layers"].items()
+            if name in layers and branch in clean
+        }
         branches = [b for b in ("diffuse", "specular") if b in clean and b in self.sessions]
         # 2. exposure normalisation and the graphs' inputs (exposure, transform, inputs, noise_std_unit, base)
         gain = self.exposure_gain(clean["diffuse"] + clean.get("specular", 0.0))
@@ -152,14 +174,19 @@ class ExportedAdmc:
         std = np.sqrt(variance.astype(np.float64)) / (np.clip(radiance, 0.0, None).astype(np.float64) + scale)
         return (np.log1p(std.mean(axis=-1, keepdims=True) / unit) / np.log1p(1.0 / unit)).astype(np.float32)
 
-    def oidn_bases(self, images: dict[str, np.ndarray], clean: dict[str, np.ndarray],
-                   quality: dict[str, str]) -> dict[str, np.ndarray]:
+    def oidn_bases(
+        self, images: dict[str, np.ndarray], clean: dict[str, np.ndarray], quality: dict[str, str]
+    ) -> dict[str, np.ndarray]:
         """OIDN on each branch (diffuse with albedo and normal, specular alone) at each branch's quality."""
         import pyoidn
 
         guides = {"diffuse": (clean["albedo"], clean["normal"]), "specular": (None, None)}
-        return {b: np.nan_to_num(pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]),
-                                 nan=0.0, posinf=0.0, neginf=0.0).clip(0.0, None) for b, image in images.items()}
+        return {
+            b: np.nan_to_num(
+                pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]), nan=0.0, posinf=0.0, neginf=0.0
+            ).clip(0.0, None)
+            for b, image in images.items()
+        }
 
     def run_tiled(self, branch: str, inputs: dict[str, np.ndarray], tile: int) -> np.ndarray:
         """The branch's graph over cores of at most `tile` pixels, each run with `halo` pixels of image around
@@ -176,11 +203,10 @@ class ExportedAdmc:
                 crop = (slice(y0, min(rows.stop + halo, height)), slice(x0, min(cols.stop + halo, width)))
                 feeds = {name: np.ascontiguousarray(a[crop].transpose(2, 0, 1)[None]) for name, a in inputs.items()}
                 result = self.sessions[branch].run(None, feeds)[0][0].transpose(1, 2, 0)
-                out[rows, cols] = result[top - y0:rows.stop - y0, left - x0:cols.stop - x0]
+                out[rows, cols] = result[top - y0 : rows.stop - y0, left - x0 : cols.stop - x0]
         return out
 
-    def keep_resolved(self, out: np.ndarray, noisy: np.ndarray, variance: np.ndarray,
-                      image: np.ndarray) -> np.ndarray:
+    def keep_resolved(self, out: np.ndarray, noisy: np.ndarray, variance: np.ndarray, image: np.ndarray) -> np.ndarray:
         rule = self.spec["keep_resolved"]
         size = 2 * rule["radius"] + 1
 

@@ -15,6 +15,7 @@ you do not test on.
 Backs: docs/results/2026-12-02-generalization-and-refiner.md (the mean beats both on rooms and
 tabletops, 36 scenes outside every test set; not on the studios).
 """
+
 import argparse
 import json
 from collections import defaultdict
@@ -58,7 +59,9 @@ def main() -> None:
     except EvalError as exc:
         parser.error(str(exc))
     torch.set_num_threads(args.threads)
-    admc = load_denoiser(args.weights, DenoiserOptions(ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass))
+    admc = load_denoiser(
+        args.weights, DenoiserOptions(ensemble=args.ensemble, dark_pass=table1.dark_pass and not args.no_dark_pass)
+    )
     oidn = OidnDenoiser(quality=table1.oidn_quality)
     scores = defaultdict(list)  # (family, spp) -> per image: [relMSE per method, 1-SSIM per method]
     for scene_id, group in by_scene(images).items():
@@ -71,8 +74,10 @@ def main() -> None:
             scores[family, test.spp].append(row)
         print(f"scored {scene_id}", flush=True)
     n = len(METHODS)
-    print(f"\nper family and spp, each average as a multiple of OIDN's ({', '.join(METHODS)}); "
-          "'beats both': images where the method beats admc and OIDN alone")
+    print(
+        f"\nper family and spp, each average as a multiple of OIDN's ({', '.join(METHODS)}); "
+        "'beats both': images where the method beats admc and OIDN alone"
+    )
     for (family, spp), rows in sorted(scores.items(), key=lambda item: (item[0][1], item[0][0])):
         table = np.array(rows)
         for metric, part in (("relMSE", table[:, :n]), ("1-SSIM", table[:, n:])):

@@ -10,6 +10,7 @@ Prints relMSE and 1-SSIM averages per spp against the references, and OIDN's tot
 Backs: docs/design-decisions.md, "OIDN per branch" (on 20 pretraining scenes the per-branch sum had the
 lower relMSE and 1-SSIM at every spp, at about 1.9x OIDN's time).
 """
+
 import argparse
 import time
 from pathlib import Path
@@ -36,14 +37,17 @@ def main() -> None:
     parser.add_argument("renders", type=Path)
     parser.add_argument("--every", type=int, default=6, help="use every n-th scene folder")
     args = parser.parse_args()
-    scenes = sorted(p for p in args.renders.iterdir() if (p / "reference.exr").is_file())[::args.every]
+    scenes = sorted(p for p in args.renders.iterdir() if (p / "reference.exr").is_file())[:: args.every]
     scores, seconds = {}, {"combined": 0.0, "per branch": 0.0}
     for scene in scenes:
         ref = read_exr(scene / "reference.exr")
         ref = ref["diffuse"] + ref.get("specular", 0.0)
         for noisy in sorted(scene.glob("spp*.exr")):
-            layers = {name: sanitize(a, name)[0] for name, a in read_exr(noisy).items()
-                      if name in ("diffuse", "specular", "albedo", "normal")}
+            layers = {
+                name: sanitize(a, name)[0]
+                for name, a in read_exr(noisy).items()
+                if name in ("diffuse", "specular", "albedo", "normal")
+            }
             spp = int(noisy.stem[3:])
             start = time.perf_counter()
             images = {"combined": combined(layers)}

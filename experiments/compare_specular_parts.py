@@ -12,6 +12,7 @@ OIDN `high`'s (a ratio of the averages, as Table 1's columns compare).
 Backs: docs/results/2026-12-04-specular-base-and-refiner.md (every variant that takes admc+oidn to 2.5x
 OIDN's time costs 1-3% of its scores; admc's own specular network is no substitute for an OIDN base).
 """
+
 import argparse
 from collections import defaultdict
 from pathlib import Path
@@ -47,8 +48,10 @@ def main() -> None:
         layers = read_exr(test.noisy_path)
         own, refined = admc(layers), refiner(layers)
         clean, _ = sanitize_layers(layers)
-        oidn_specular = {quality: oidn.denoise(clean["specular"], quality=quality) if "specular" in clean else 0.0
-                         for quality in ("high", "fast")}
+        oidn_specular = {
+            quality: oidn.denoise(clean["specular"], quality=quality) if "specular" in clean else 0.0
+            for quality in ("high", "fast")
+        }
         variants = {
             "oidn high": baseline.denoise(layers),
             "refiner on high / refiner on high (default)": refined.image,

@@ -16,6 +16,7 @@ Point it at scenes you do not test on.
 Backs: docs/results/2026-12-01-worse-than-input-cells.md (a log-domain offset of 5e-4 to 1e-3 at every
 level, a 32% darkening below an irradiance of 3e-3), which led to the dark pass.
 """
+
 import argparse
 from pathlib import Path
 
@@ -51,16 +52,20 @@ def main() -> None:
         start, out, truth = (network_domain(x) for x in (noisy["diffuse"], result.diffuse, reference["diffuse"]))
         level = truth.mean(-1)
         lit = (reference["diffuse"].mean(-1) > 1e-6) & (noisy["coverage"][..., 0] > 0.999)
-        print(f"{scene} @ {args.spp} spp (exposure gain {gain:g}): log1p irradiance bin, pixels, mean correction, "
-              f"output - reference mean and |.| (input's in brackets), output's relative bias")
+        print(
+            f"{scene} @ {args.spp} spp (exposure gain {gain:g}): log1p irradiance bin, pixels, mean correction, "
+            f"output - reference mean and |.| (input's in brackets), output's relative bias"
+        )
         for low, high in zip(EDGES, EDGES[1:]):
             m = lit & (level >= low) & (level < high)
             if m.sum() < 20:
                 continue
             err, err_in = (out - truth)[m], (start - truth)[m]
-            print(f"  [{low:g}, {high:g}) {m.sum():6d}  {(out - start)[m].mean():+.5f}  {err.mean():+.5f} "
-                  f"({err_in.mean():+.5f})  {np.abs(err).mean():.5f} ({np.abs(err_in).mean():.5f})  "
-                  f"{err.mean() / truth[m].mean():+.3f}")
+            print(
+                f"  [{low:g}, {high:g}) {m.sum():6d}  {(out - start)[m].mean():+.5f}  {err.mean():+.5f} "
+                f"({err_in.mean():+.5f})  {np.abs(err).mean():.5f} ({np.abs(err_in).mean():.5f})  "
+                f"{err.mean() / truth[m].mean():+.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ they ran before, when those pixels had coverage 0 and were passed through (both 
 Prints relMSE and 1-SSIM over the whole image and
 relMSE over the pixels the change touches.
 """
+
 import argparse
 
 import numpy as np
@@ -26,10 +27,9 @@ from admc.pipeline.render.variants import use_variant
 from admc.pipeline.weights import WEIGHTS_DIR
 
 
-
 def environment_map(width: int = 512, height: int = 256) -> np.ndarray:
     """A lat-long HDR sky: blue gradient, a sun, a band of thin stripes at the horizon, a checkered ground."""
-    theta = (np.arange(height) + 0.5) / height * np.pi          # 0 at the zenith
+    theta = (np.arange(height) + 0.5) / height * np.pi  # 0 at the zenith
     phi = (np.arange(width) + 0.5) / width * 2 * np.pi
     theta, phi = np.meshgrid(theta, phi, indexing="ij")
     up = np.cos(theta)
@@ -47,20 +47,37 @@ def environment_map(width: int = 512, height: int = 256) -> np.ndarray:
 def mirror_spheres(mi, size: int):
     """Three mirror spheres (silver, gold-tinted, a small one in front) and a glass sphere, nothing else."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": T().look_at(origin=[0, 1.2, 5], target=[0, 0.2, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}},
-        "sky": {"type": "envmap", "bitmap": mi.Bitmap(environment_map())},
-        "silver": {"type": "sphere", "center": [-1.1, 0.3, 0], "radius": 0.8,
-                   "bsdf": {"type": "conductor", "material": "Ag"}},
-        "gold": {"type": "sphere", "center": [1.1, 0.3, -0.3], "radius": 0.8,
-                 "bsdf": {"type": "conductor", "material": "Au"}},
-        "small": {"type": "sphere", "center": [0.2, -0.3, 1.3], "radius": 0.35,
-                  "bsdf": {"type": "conductor", "material": "Cr"}},
-        "glass": {"type": "sphere", "center": [0.1, 0.9, -1.5], "radius": 0.6, "bsdf": {"type": "dielectric"}},
-    })
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "perspective",
+                "fov": 45,
+                "to_world": T().look_at(origin=[0, 1.2, 5], target=[0, 0.2, 0], up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+            },
+            "sky": {"type": "envmap", "bitmap": mi.Bitmap(environment_map())},
+            "silver": {
+                "type": "sphere",
+                "center": [-1.1, 0.3, 0],
+                "radius": 0.8,
+                "bsdf": {"type": "conductor", "material": "Ag"},
+            },
+            "gold": {
+                "type": "sphere",
+                "center": [1.1, 0.3, -0.3],
+                "radius": 0.8,
+                "bsdf": {"type": "conductor", "material": "Au"},
+            },
+            "small": {
+                "type": "sphere",
+                "center": [0.2, -0.3, 1.3],
+                "radius": 0.35,
+                "bsdf": {"type": "conductor", "material": "Cr"},
+            },
+            "glass": {"type": "sphere", "center": [0.1, 0.9, -1.5], "radius": 0.6, "bsdf": {"type": "dielectric"}},
+        }
+    )
 
 
 def old_layers(layers: dict) -> tuple[dict, np.ndarray]:
@@ -85,9 +102,12 @@ def main() -> None:
     reference = render_buffers(scene, args.reference_spp, seed=1000)
     ref = reference["diffuse"] + reference["specular"]
     oidn = OidnDenoiser(quality=table1.oidn_quality)
-    learned = {name: load_denoiser(WEIGHTS_DIR / f"admc-small-{file}.pt", DenoiserOptions(ensemble=table1.ensemble,
-                                   dark_pass=table1.dark_pass))
-               for name, file in (("admc", "pretrained"), ("admc+oidn", "refiner"))}
+    learned = {
+        name: load_denoiser(
+            WEIGHTS_DIR / f"admc-small-{file}.pt", DenoiserOptions(ensemble=table1.ensemble, dark_pass=table1.dark_pass)
+        )
+        for name, file in (("admc", "pretrained"), ("admc+oidn", "refiner"))
+    }
     print(f"{args.size}x{args.size}, reference {args.reference_spp} spp; relMSE (whole image, touched pixels), 1-SSIM")
     for spp in args.spp:
         layers = render_buffers(scene, spp, seed=spp)
@@ -99,9 +119,11 @@ def main() -> None:
             images[f"{name} now"] = denoiser(layers).image
         print(f"{spp} spp, {int(touched.sum())} touched pixels of {touched.size}")
         for name, image in images.items():
-            print(f"  {name:16s} relMSE {relmse(image, ref):.5f}  "
-                  f"touched {relmse(image[touched][None], ref[touched][None]):.5f}"
-                  f"  1-SSIM {one_minus_ssim(image, ref):.5f}")
+            print(
+                f"  {name:16s} relMSE {relmse(image, ref):.5f}  "
+                f"touched {relmse(image[touched][None], ref[touched][None]):.5f}"
+                f"  1-SSIM {one_minus_ssim(image, ref):.5f}"
+            )
 
 
 if __name__ == "__main__":

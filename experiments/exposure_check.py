@@ -12,6 +12,7 @@ when pointed at a pretraining store with `--split train --scales 1`.
 Backs: docs/design-decisions.md, "Exposure normalisation" (at 1/16 exposure, 2.08x the input's relMSE
 at 64 spp without it, 0.36x with it; TRAINED_BRIGHTNESS = 0.21, the pretraining corpus's median).
 """
+
 import argparse
 from pathlib import Path
 
@@ -29,8 +30,9 @@ from admc.stores.patches.format import list_scenes
 
 
 def scaled(layers: dict, factor: float) -> dict:
-    return {name: value * np.float32(factor) if name in ("diffuse", "specular") else value
-            for name, value in layers.items()}
+    return {
+        name: value * np.float32(factor) if name in ("diffuse", "specular") else value for name, value in layers.items()
+    }
 
 
 def main() -> None:
@@ -57,7 +59,8 @@ def main() -> None:
                 noisy, ref = scaled(layers, factor), reference * np.float32(factor)
                 input_error = relmse(noisy_color(noisy), ref)
                 results.setdefault((spp, factor), []).append(
-                    (relmse(plain.denoise(noisy), ref) / input_error, relmse(normed.denoise(noisy), ref) / input_error))
+                    (relmse(plain.denoise(noisy), ref) / input_error, relmse(normed.denoise(noisy), ref) / input_error)
+                )
     print(f"{args.split} scenes of {args.store}: denoiser relMSE / input relMSE, mean over scenes")
     print("spp  scale     plain  normalised  normalised worse on")
     for (spp, factor), pairs in sorted(results.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
@@ -65,8 +68,10 @@ def main() -> None:
         worse = int((a[:, 1] > a[:, 0] * 1.001).sum())
         print(f"{spp:3d}  {factor:<8g}  {a[:, 0].mean():.4f}  {a[:, 1].mean():.4f}      {worse} of {len(a)}")
     for spp, values in sorted(levels.items()):
-        print(f"brightness at {spp} spp, percentiles 10/50/90: "
-              + " / ".join(f"{v:.4f}" for v in np.percentile(values, [10, 50, 90])))
+        print(
+            f"brightness at {spp} spp, percentiles 10/50/90: "
+            + " / ".join(f"{v:.4f}" for v in np.percentile(values, [10, 50, 90]))
+        )
 
 
 if __name__ == "__main__":

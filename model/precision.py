@@ -4,6 +4,7 @@ bfloat16 autocast keeps float32 master weights, optimiser states and (in losses.
 the gradient penalty; only conv/linear arithmetic runs in bf16, which has float32's exponent range,
 so no loss scaling is needed. Every network tensor is channels_last, in either precision (MEMORY_FORMAT).
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -7,6 +7,7 @@ error. Codes 0..7 are 3 bits, applied in this order: transpose, flip rows, flip 
 applies their inverses in reverse. The view-space normal channels change with the geometry, so a
 flipped patch is a patch that could have been rendered.
 """
+
 from __future__ import annotations
 
 from torch import Tensor
@@ -18,8 +19,7 @@ N_SYMMETRIES = 8
 NORMAL_X, NORMAL_Y = NORMAL.start, NORMAL.start + 1  # view-space normal (x right, y up), stored as (n + 1) / 2
 
 HALF_TURN = FLIP_ROWS | FLIP_COLS
-ENSEMBLE_CODES = {1: (0,), 2: (0, TRANSPOSE), 4: (0, TRANSPOSE, HALF_TURN, HALF_TURN | TRANSPOSE),
-                  8: tuple(range(8))}
+ENSEMBLE_CODES = {1: (0,), 2: (0, TRANSPOSE), 4: (0, TRANSPOSE, HALF_TURN, HALF_TURN | TRANSPOSE), 8: tuple(range(8))}
 """Symmetries averaged for an ensemble of each size (the keys are layout.ENSEMBLES): the identity, then
 its transpose, then the half turn of both."""
 

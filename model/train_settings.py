@@ -6,6 +6,7 @@ raises ValueError("<field>: <problem>"). The dataclass defaults are the paper's 
 the authors' code where code and paper text disagree); the presets a run starts from are
 configs/*.toml (default.toml: a CPU model that trains in minutes; paper.toml: the paper's scale).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,8 +35,8 @@ class TrainSettings:
     """
 
     steps: int = 600_000
-    minutes: float = 0.0                  # > 0: a wall-clock budget; the run ends at the first step past it (and
-                                          # at `steps` at the latest), validated and checkpointed; 0 = no budget
+    minutes: float = 0.0  # > 0: a wall-clock budget; the run ends at the first step past it (and
+    # at `steps` at the latest), validated and checkpointed; 0 = no budget
     batch_size: int = 8
     l1_warmup_steps: int = 0
     critic_only_steps: int = 0
@@ -43,75 +44,101 @@ class TrainSettings:
     lr_g_diffuse: float = 1e-6
     lr_g_specular: float = 1e-4
     lr_d: float = 1e-4
-    body_lr_factor: float = 5.0           # body + encoder learn at this multiple of the branch's lr
-    head_tail_start_step: int = 20_000    # head and tail stay fixed before this step
+    body_lr_factor: float = 5.0  # body + encoder learn at this multiple of the branch's lr
+    head_tail_start_step: int = 20_000  # head and tail stay fixed before this step
     lr_milestones: tuple[int, ...] = (50_000, 100_000, 150_000, 200_000)
     lr_gamma: float = 0.5
     l1_weight: float = 1.0
-    l1_floor: float = 1.0                 # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
-    ssim_weight: float = 0.0              # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
-    distill_from: str = ""                # weights or checkpoint of a teacher generator ("" = none): the loss also
-                                          # compares the output with the teacher's on the same input (teacher.py)
-    distill_weight: float = 1.0           # weight of that term (L1 on log(v + l1_floor), as the reference's)
-    ema: float = 0.0                      # validate and ship an exponential moving average of the generator's
-                                          # weights with this decay per step (branch.py); 0 = the weights themselves
+    l1_floor: float = 1.0  # L1 on log(v + l1_floor) of linear v; 1 = log1p (losses.log_floor)
+    ssim_weight: float = 0.0  # weight of 1 - SSIM of the display images (losses.display_ssim_loss)
+    distill_from: str = ""  # weights or checkpoint of a teacher generator ("" = none): the loss also
+    # compares the output with the teacher's on the same input (teacher.py)
+    distill_weight: float = 1.0  # weight of that term (L1 on log(v + l1_floor), as the reference's)
+    ema: float = 0.0  # validate and ship an exponential moving average of the generator's
+    # weights with this decay per step (branch.py); 0 = the weights themselves
     adv_weight: float = 5e-3
     gp_weight: float = 10.0
     adversarial: bool = True
-    val_every: int = 5_000                # 0 = no validation
+    val_every: int = 5_000  # 0 = no validation
     val_patches: int = 64
-    select_metric: str = "relmse"         # what ranks validated steps: relmse | relmse+ssim (selection.py)
-    oidn_blend: bool = False              # choose, on the val patches, the share of its own output a model keeps
-                                          # when blended with OIDN's (the rest OIDN's): shipped with the weights
-    select_z: float = 2.0                 # a fine-tuning ships a step only this many standard errors better than
-                                          # its starting weights on the val patches (selection.py); 0: any better
+    select_metric: str = "relmse"  # what ranks validated steps: relmse | relmse+ssim (selection.py)
+    oidn_blend: bool = False  # choose, on the val patches, the share of its own output a model keeps
+    # when blended with OIDN's (the rest OIDN's): shipped with the weights
+    select_z: float = 2.0  # a fine-tuning ships a step only this many standard errors better than
+    # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
     log_every: int = 100
     num_workers: int = 4
-    threads: int = 0                      # CPU intra-op threads; 0 = torch's default
+    threads: int = 0  # CPU intra-op threads; 0 = torch's default
     device: str = "auto"
-    precision: str = "auto"               # auto | float32 | bfloat16 (autocast; see branch.resolve_precision)
+    precision: str = "auto"  # auto | float32 | bfloat16 (autocast; see branch.resolve_precision)
     seed: int = 0
-    max_bad_steps: int = 20               # consecutive non-finite steps before training stops
+    max_bad_steps: int = 20  # consecutive non-finite steps before training stops
     branches: tuple[str, ...] = BRANCHES
 
     def check(self) -> None:
-        positive_ints(self, ("steps", "batch_size", "critic_steps_per_g", "checkpoint_every", "log_every",
-                             "max_bad_steps"))
-        non_negative_ints(self, ("l1_warmup_steps", "critic_only_steps", "head_tail_start_step", "val_every",
-                                 "num_workers", "threads", "seed"))
-        require(self.val_every == 0 or (isinstance(self.val_patches, int) and self.val_patches >= 1),
-                "val_patches", f"must be >= 1 when val_every > 0, got {self.val_patches!r}")
+        positive_ints(
+            self, ("steps", "batch_size", "critic_steps_per_g", "checkpoint_every", "log_every", "max_bad_steps")
+        )
+        non_negative_ints(
+            self,
+            (
+                "l1_warmup_steps",
+                "critic_only_steps",
+                "head_tail_start_step",
+                "val_every",
+                "num_workers",
+                "threads",
+                "seed",
+            ),
+        )
+        require(
+            self.val_every == 0 or (isinstance(self.val_patches, int) and self.val_patches >= 1),
+            "val_patches",
+            f"must be >= 1 when val_every > 0, got {self.val_patches!r}",
+        )
         for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
-        require(isinstance(self.distill_from, str), "distill_from", f"must be a path or \"\", got {self.distill_from!r}")
+        require(isinstance(self.distill_from, str), "distill_from", f'must be a path or "", got {self.distill_from!r}')
         for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z", "distill_weight", "minutes"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
-        require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema",
-                f"must be in [0, 1), got {self.ema!r}")
+        require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema", f"must be in [0, 1), got {self.ema!r}")
         require(self.lr_gamma <= 1, "lr_gamma", f"must be in (0, 1], got {self.lr_gamma!r}")
         milestones = list(self.lr_milestones)
-        require(all(isinstance(m, int) and m >= 1 for m in milestones) and milestones == sorted(set(milestones)),
-                "lr_milestones", f"must be strictly increasing ints >= 1, got {milestones}")
+        require(
+            all(isinstance(m, int) and m >= 1 for m in milestones) and milestones == sorted(set(milestones)),
+            "lr_milestones",
+            f"must be strictly increasing ints >= 1, got {milestones}",
+        )
         require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
         require(isinstance(self.oidn_blend, bool), "oidn_blend", f"must be true or false, got {self.oidn_blend!r}")
         require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
-        require(self.select_metric in SELECT_METRICS, "select_metric",
-                f"{self.select_metric!r} is not one of {SELECT_METRICS}")
-        require(len(self.branches) > 0 and all(b in BRANCHES for b in self.branches)
-                and len(set(self.branches)) == len(self.branches),
-                "branches", f"must be distinct names from {BRANCHES}, got {list(self.branches)}")
-        require(self.l1_weight > 0 or self.ssim_weight > 0 or self.adversarial, "l1_weight",
-                "and ssim_weight are 0 and adversarial is off: nothing to train")
+        require(
+            self.select_metric in SELECT_METRICS,
+            "select_metric",
+            f"{self.select_metric!r} is not one of {SELECT_METRICS}",
+        )
+        require(
+            len(self.branches) > 0
+            and all(b in BRANCHES for b in self.branches)
+            and len(set(self.branches)) == len(self.branches),
+            "branches",
+            f"must be distinct names from {BRANCHES}, got {list(self.branches)}",
+        )
+        require(
+            self.l1_weight > 0 or self.ssim_weight > 0 or self.adversarial,
+            "l1_weight",
+            "and ssim_weight are 0 and adversarial is off: nothing to train",
+        )
 
     def lr_g(self, branch: str) -> float:
         return self.lr_g_diffuse if branch == "diffuse" else self.lr_g_specular
 
     def phase(self, step: int) -> str:
-        """"l1", "critic" (generator frozen) or "adversarial" for a 0-based global step."""
+        """ "l1", "critic" (generator frozen) or "adversarial" for a 0-based global step."""
         if not self.adversarial or step < self.l1_warmup_steps:
             return "l1"
         if step < self.l1_warmup_steps + self.critic_only_steps:

@@ -5,6 +5,7 @@ first demodulated by albedo (the network sees texture-free illumination, as in t
 Features are mapped to [0, 1]. Inputs are sanitised first (admc.common.buffers.sanitize, counted and
 reported by the caller); the forward transforms refuse anything non-finite, so nothing passes on silently.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,15 +27,17 @@ def transform_spec() -> dict:
         "eps": EPS,
         "radiance_max": RADIANCE_MAX,
         "fp16_max": FP16_MAX,
-        "sanitize": {name: {"nan": LAYERS[name].nan, "min": LAYERS[name].low, "max": LAYERS[name].high}
-                     for name in DENOISER_LAYERS},
+        "sanitize": {
+            name: {"nan": LAYERS[name].nan, "min": LAYERS[name].low, "max": LAYERS[name].high}
+            for name in DENOISER_LAYERS
+        },
         "diffuse": "log1p(clip(diffuse, 0, radiance_max) / (albedo + eps)), albedo = clip(albedo, 0, 1)",
         "diffuse_inverse": "expm1(d) * (albedo + eps)",
         "specular": "log1p(clip(specular, 0, radiance_max))",
         "specular_inverse": "expm1(s)",
         "normal": "clip((nan_to_0(n) + 1) / 2, 0, 1)",
         "depth": "depth / max(depth over hits of the whole image); hit = coverage > 0 and depth > 0 "
-                 "and finite; other pixels 1.0; no hits: all 1.0",
+        "and finite; other pixels 1.0; no hits: all 1.0",
         "albedo": "clip(nan_to_0(albedo), 0, 1)",
         "feature_channels": list(FEATURE_CHANNELS),
     }
@@ -135,9 +138,7 @@ def features(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, coverage
             f"features: expected normal (H,W,3), depth (H,W,1), albedo (H,W,3); got "
             f"{normal.shape}, {depth.shape}, {albedo.shape}"
         )
-    return np.concatenate(
-        [normal_forward(normal), depth_forward(depth, coverage), albedo_forward(albedo)], axis=-1
-    )
+    return np.concatenate([normal_forward(normal), depth_forward(depth, coverage), albedo_forward(albedo)], axis=-1)
 
 
 def to_fp16(x: np.ndarray) -> tuple[np.ndarray, int]:

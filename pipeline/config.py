@@ -4,6 +4,7 @@
 overrides overlay both. The dataclasses below are the schema: an unknown key, a value of the wrong
 type or out of range is a ConfigError that names the key, so a typo never silently runs the defaults.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -45,21 +46,31 @@ class CorpusConfig:
 
     def check(self) -> None:
         require(self.n_scenes >= 0, "n_scenes", f"must be >= 0, got {self.n_scenes}")
-        for key, names, known in (("families", self.families, FAMILY_NAMES),
-                                  ("held_out_families", self.held_out_families, FAMILY_NAMES)):
+        for key, names, known in (
+            ("families", self.families, FAMILY_NAMES),
+            ("held_out_families", self.held_out_families, FAMILY_NAMES),
+        ):
             unknown = [name for name in names if name not in known]
             require(not unknown, key, f"unknown families {unknown}; known: {', '.join(sorted(known))}")
         held = [name for name in self.families if name in self.held_out_families]
-        require(not held, "families", f"{held} held out of training (corpus.held_out_families); "
-                                              "they are the out-of-family set's, never tiled into training")
+        require(
+            not held,
+            "families",
+            f"{held} held out of training (corpus.held_out_families); "
+            "they are the out-of-family set's, never tiled into training",
+        )
         ood = [name for name in self.constructs if name in OOD_CONSTRUCT_NAMES]
         require(not ood, "constructs", f"{ood} are held out for the out-of-family set (family 'ood')")
         unknown = [name for name in self.constructs if name not in CONSTRUCT_NAMES]
         require(not unknown, "constructs", f"unknown constructs {unknown}; known: {', '.join(CONSTRUCT_NAMES)}")
-        require(0.0 <= self.construct_chance <= 1.0, "construct_chance",
-                f"must be in [0, 1], got {self.construct_chance}")
-        require(self.xml_resolution in ("render", "film"), "xml_resolution",
-                f"must be render or film, got {self.xml_resolution!r}")
+        require(
+            0.0 <= self.construct_chance <= 1.0, "construct_chance", f"must be in [0, 1], got {self.construct_chance}"
+        )
+        require(
+            self.xml_resolution in ("render", "film"),
+            "xml_resolution",
+            f"must be render or film, got {self.xml_resolution!r}",
+        )
         require(self.n_scenes == 0 or len(self.families) > 0, "families", "empty but n_scenes > 0")
 
 
@@ -78,16 +89,24 @@ class RenderConfig:
 
     def check(self) -> None:
         w, h = self.resolution
-        require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "resolution",
-                f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.resolution)}")
+        require(
+            1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION,
+            "resolution",
+            f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.resolution)}",
+        )
         require(len(self.spp) > 0, "spp", "needs at least one sample count")
         require(all(s >= 1 for s in self.spp), "spp", f"every spp must be >= 1, got {list(self.spp)}")
         require(len(set(self.spp)) == len(self.spp), "spp", f"duplicates in {list(self.spp)}")
-        require(self.reference_spp > max(self.spp), "reference_spp",
-                f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}")
+        require(
+            self.reference_spp > max(self.spp),
+            "reference_spp",
+            f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}",
+        )
         require(1 <= self.max_depth <= 64, "max_depth", f"must be in 1..64, got {self.max_depth}")
         require(self.max_spp_per_pass >= 1, "max_spp_per_pass", "must be >= 1")
-        require(1 <= self.cycles_subrenders <= 64, "cycles_subrenders", f"must be in 1..64, got {self.cycles_subrenders}")
+        require(
+            1 <= self.cycles_subrenders <= 64, "cycles_subrenders", f"must be in 1..64, got {self.cycles_subrenders}"
+        )
         require(self.blender_threads >= 0, "blender_threads", f"must be >= 0, got {self.blender_threads}")
 
 
@@ -107,17 +126,26 @@ class TileConfig:
 
     def check(self) -> None:
         # [model]'s critic takes the patch through 5 stride-2 stages: checked here, before a store is built
-        require(self.patch_size >= DOWNSAMPLING and self.patch_size % DOWNSAMPLING == 0, "patch_size",
-                f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}")
+        require(
+            self.patch_size >= DOWNSAMPLING and self.patch_size % DOWNSAMPLING == 0,
+            "patch_size",
+            f"must be a multiple of {DOWNSAMPLING} (the critic halves it 5 times), got {self.patch_size}",
+        )
         require(self.crops_per_scene >= 1, "crops_per_scene", "must be >= 1")
         require(self.candidates_per_crop >= 1, "candidates_per_crop", "must be >= 1")
-        require(all(f >= 0 for f in self.split) and abs(sum(self.split) - 1) <= SPLIT_TOLERANCE, "split",
-                f"the train, val and test fractions must be >= 0 and sum to 1, got {list(self.split)} "
-                f"(sum {sum(self.split):g})")
+        require(
+            all(f >= 0 for f in self.split) and abs(sum(self.split) - 1) <= SPLIT_TOLERANCE,
+            "split",
+            f"the train, val and test fractions must be >= 0 and sum to 1, got {list(self.split)} "
+            f"(sum {sum(self.split):g})",
+        )
         require(bool(self.store), "store", "must not be empty")
         require(self.val_set in ("split", "ood"), "val_set", f"must be split or ood, got {self.val_set!r}")
-        require(self.refiner_base in BASE_QUALITIES, "refiner_base",
-                f"must be one of {', '.join(BASE_QUALITIES)}, got {self.refiner_base!r}")
+        require(
+            self.refiner_base in BASE_QUALITIES,
+            "refiner_base",
+            f"must be one of {', '.join(BASE_QUALITIES)}, got {self.refiner_base!r}",
+        )
 
 
 @dataclass(frozen=True)
@@ -143,30 +171,49 @@ class EvalConfig:
     reference_spp: int
 
     def check(self) -> None:
-        require(self.test_scenes_per_family >= 0, "test_scenes_per_family",
-                f"must be >= 0, got {self.test_scenes_per_family}")
-        require(self.test_scenes_per_family == 0 or len(self.test_families) > 0, "test_families",
-                "empty but eval.test_scenes_per_family > 0")
+        require(
+            self.test_scenes_per_family >= 0,
+            "test_scenes_per_family",
+            f"must be >= 0, got {self.test_scenes_per_family}",
+        )
+        require(
+            self.test_scenes_per_family == 0 or len(self.test_families) > 0,
+            "test_families",
+            "empty but eval.test_scenes_per_family > 0",
+        )
         w, h = self.test_resolution
-        require(1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION, "test_resolution",
-                f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.test_resolution)}")
-        require(self.split in ("train", "val", "test", "ood"), "split",
-                f"must be train, val, test or ood, got {self.split!r}")
-        require(self.ood_scenes_per_family >= 0, "ood_scenes_per_family",
-                f"must be >= 0, got {self.ood_scenes_per_family}")
-        require(self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families), "ood_families",
-                "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0")
+        require(
+            1 <= w <= MAX_RESOLUTION and 1 <= h <= MAX_RESOLUTION,
+            "test_resolution",
+            f"width and height must be in 1..{MAX_RESOLUTION}, got {list(self.test_resolution)}",
+        )
+        require(
+            self.split in ("train", "val", "test", "ood"),
+            "split",
+            f"must be train, val, test or ood, got {self.split!r}",
+        )
+        require(
+            self.ood_scenes_per_family >= 0, "ood_scenes_per_family", f"must be >= 0, got {self.ood_scenes_per_family}"
+        )
+        require(
+            self.split != "ood" or (self.ood_scenes_per_family > 0 and self.ood_families),
+            "ood_families",
+            "eval.split = 'ood' needs ood_families and ood_scenes_per_family > 0",
+        )
         unknown = [name for name in self.ood_families if name not in FAMILY_NAMES]
-        require(not unknown, "ood_families",
-                f"unknown families {unknown}; known: {', '.join(sorted(FAMILY_NAMES))}")
-        require(self.oidn_quality in OIDN_QUALITIES, "oidn_quality",
-                f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}")
+        require(not unknown, "ood_families", f"unknown families {unknown}; known: {', '.join(sorted(FAMILY_NAMES))}")
+        require(
+            self.oidn_quality in OIDN_QUALITIES,
+            "oidn_quality",
+            f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}",
+        )
         require(self.optix in ("auto", "on", "off"), "optix", f"must be auto, on or off, got {self.optix!r}")
         require(self.repeats >= 1, "repeats", "must be >= 1")
         require(self.warmup >= 0, "warmup", "must be >= 0")
         require(self.ensemble in ENSEMBLES, "ensemble", f"must be one of {ENSEMBLES}, got {self.ensemble!r}")
-        require(self.engine in ENGINE_CHOICES, "engine",
-                f"must be one of {', '.join(ENGINE_CHOICES)}, got {self.engine!r}")
+        require(
+            self.engine in ENGINE_CHOICES, "engine", f"must be one of {', '.join(ENGINE_CHOICES)}, got {self.engine!r}"
+        )
 
 
 @dataclass(frozen=True)
@@ -179,8 +226,11 @@ class RunConfig:
         require(self.workers >= 0, "workers", f"must be >= 0 (0 = auto), got {self.workers}")
         require(bool(self.scheduler), "scheduler", "must not be empty")
         require(bool(self.workdir), "workdir", "must not be empty")
-        require(not Path(self.workdir).exists() or Path(self.workdir).is_dir(), "workdir",
-                f"{self.workdir} is a file; it must name a folder (made if missing)")
+        require(
+            not Path(self.workdir).exists() or Path(self.workdir).is_dir(),
+            "workdir",
+            f"{self.workdir} is a file; it must name a folder (made if missing)",
+        )
 
 
 WALLTIME = re.compile(r"^(\d+-)?\d+:\d{2}:\d{2}$")
@@ -210,11 +260,15 @@ class ClusterConfig:
             parse_bytes(self.memory)
         except (ValueError, TypeError):
             require(False, "memory", f"must be a size such as '32GB' or '64GiB', got {self.memory!r}")
-        require(bool(WALLTIME.match(self.walltime)), "walltime",
-                f"must be HH:MM:SS or D-HH:MM:SS, got {self.walltime!r}")
+        require(
+            bool(WALLTIME.match(self.walltime)), "walltime", f"must be HH:MM:SS or D-HH:MM:SS, got {self.walltime!r}"
+        )
         for i, line in enumerate(self.job_directives):
-            require(line.startswith("-") and "\n" not in line, f"job_directives[{i}]",
-                    f"must be one sbatch option such as '--constraint=a100', got {line!r}")
+            require(
+                line.startswith("-") and "\n" not in line,
+                f"job_directives[{i}]",
+                f"must be one sbatch option such as '--constraint=a100', got {line!r}",
+            )
 
 
 @dataclass(frozen=True)
@@ -248,12 +302,16 @@ def _coerce(value, annotation, key: str):
         require(len(value) == len(args), key, f"expected {len(args)} values, got {len(value)}")
         return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
     if annotation is float:
-        require(isinstance(value, (int, float)) and not isinstance(value, bool), key,
-                f"expected a number, got {value!r}")
+        require(
+            isinstance(value, (int, float)) and not isinstance(value, bool), key, f"expected a number, got {value!r}"
+        )
         require(math.isfinite(value), key, f"must be a finite number, got {value!r}")
         return float(value)
-    require(isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
-            key, f"expected {annotation.__name__}, got {value!r}")
+    require(
+        isinstance(value, annotation) and not (annotation is int and isinstance(value, bool)),
+        key,
+        f"expected {annotation.__name__}, got {value!r}",
+    )
     return value
 
 
@@ -266,8 +324,9 @@ def _merge(base: dict, overlay: dict, source: str) -> dict:
             raise ConfigError(f"config key '{section}' in {source}: expected a [{section}] table")
         for key, value in values.items():
             if key not in merged[section]:
-                raise ConfigError(f"unknown config key '{section}.{key}' in {source}; "
-                                  f"known: {', '.join(merged[section])}")
+                raise ConfigError(
+                    f"unknown config key '{section}.{key}' in {source}; known: {', '.join(merged[section])}"
+                )
             merged[section][key] = value
     return merged
 
@@ -296,8 +355,10 @@ def _read_toml(path: Path) -> dict:
     except OSError as exc:
         raise ConfigError(f"config file {path} cannot be read ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
-                          f"{exc.start}); TOML files are UTF-8") from None
+        raise ConfigError(
+            f"config file {path} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
+            f"{exc.start}); TOML files are UTF-8"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
 
@@ -347,20 +408,32 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Co
     config = Config(**sections)
     _check_test_set_apart(config)
     scored = config.eval.reference_spp
-    require(scored == 0 or scored > max(config.render.spp), "reference_spp",
-            f"must be 0 (render.reference_spp) or exceed every input spp (max {max(config.render.spp)}), got {scored}",
-            "eval")
-    require(config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
-            "val_set", "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty", "tile")
+    require(
+        scored == 0 or scored > max(config.render.spp),
+        "reference_spp",
+        f"must be 0 (render.reference_spp) or exceed every input spp (max {max(config.render.spp)}), got {scored}",
+        "eval",
+    )
+    require(
+        config.tile.val_set != "ood" or (config.eval.ood_families and config.eval.ood_scenes_per_family > 0),
+        "val_set",
+        "is 'ood', but eval.ood_families or eval.ood_scenes_per_family leaves the set empty",
+        "tile",
+    )
     base = config.model.base
-    require(base == "noisy" or config.tile.oidn_base, "oidn_base",
-            f"is false, but model.base = {base!r} trains on OIDN's outputs, which tiling stores only when it is true",
-            "tile")
+    require(
+        base == "noisy" or config.tile.oidn_base,
+        "oidn_base",
+        f"is false, but model.base = {base!r} trains on OIDN's outputs, which tiling stores only when it is true",
+        "tile",
+    )
     stored = config.tile.refiner_base
     if base not in ("noisy", stored):  # the message names each base's qualities, which "noisy" has not
-        raise ConfigError(f"config key 'tile.refiner_base': is {stored!r}, but model.base = {base!r} trains on the "
-                          f"bases of {base!r} (OIDN {_qualities(base)}; the store's: {_qualities(stored)}): "
-                          f"set model.base = {stored!r}, or tile.refiner_base = {base!r} with a tile.store of its own")
+        raise ConfigError(
+            f"config key 'tile.refiner_base': is {stored!r}, but model.base = {base!r} trains on the "
+            f"bases of {base!r} (OIDN {_qualities(base)}; the store's: {_qualities(stored)}): "
+            f"set model.base = {stored!r}, or tile.refiner_base = {base!r} with a tile.store of its own"
+        )
     return config
 
 
@@ -376,8 +449,14 @@ def _check_test_set_apart(config: Config) -> None:
     """The dedicated test and out-of-family scenes must not be the training corpus's own scenes (same
     seed, same family): scene seeds are seed * SEEDS_PER_CORPUS + k, so another seed is another scene."""
     for name in ("test", "ood"):
-        families, count, seed = (getattr(config.eval, f"{name}_{key}") for key in ("families", "scenes_per_family", "seed"))
+        families, count, seed = (
+            getattr(config.eval, f"{name}_{key}") for key in ("families", "scenes_per_family", "seed")
+        )
         shared = set(config.corpus.families) & set(families)
-        require(not (count and config.corpus.n_scenes and shared and seed == config.corpus.seed), f"{name}_seed",
-                f"equals corpus.seed ({config.corpus.seed}): the {name} scenes of {sorted(shared)} would be "
-                "training scenes; choose a seed no training corpus uses", "eval")
+        require(
+            not (count and config.corpus.n_scenes and shared and seed == config.corpus.seed),
+            f"{name}_seed",
+            f"equals corpus.seed ({config.corpus.seed}): the {name} scenes of {sorted(shared)} would be "
+            "training scenes; choose a seed no training corpus uses",
+            "eval",
+        )

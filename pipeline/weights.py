@@ -2,6 +2,7 @@
 
 Every command that needs weights (train's fine-tuning start, denoise, eval) finds them here.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -29,8 +30,10 @@ def _shipped(weights_dir: Path) -> list[tuple[Path, ModelSettings]]:
     manifest = weights_dir / "manifest.json"
     if not manifest.is_file():
         return []
-    return [(weights_dir / entry["file"], ModelSettings.from_saved(entry["model"]))
-            for entry in json.loads(manifest.read_text())["weights"]]
+    return [
+        (weights_dir / entry["file"], ModelSettings.from_saved(entry["model"]))
+        for entry in json.loads(manifest.read_text())["weights"]
+    ]
 
 
 def shipped_weights(model: ModelSettings, weights_dir: Path = WEIGHTS_DIR) -> Path | None:
@@ -74,16 +77,23 @@ def default_weights(cfg: Config) -> Path:
             return candidate
     shipped = shipped_weights(cfg.model)
     if shipped is None:
-        raise StageError(f"no trained weights under {cfg.workdir_path('train')} and none shipped for this "
-                         "[model] config: run `admc-pipe train` or pass --weights")
+        raise StageError(
+            f"no trained weights under {cfg.workdir_path('train')} and none shipped for this "
+            "[model] config: run `admc-pipe train` or pass --weights"
+        )
     return shipped
 
 
-def load_model(cfg: Config, weights: Path | None, options: DenoiserOptions = DenoiserOptions(device="auto"),
-               oidn_blend: bool = True) -> FullImageDenoiser:
+def load_model(
+    cfg: Config,
+    weights: Path | None,
+    options: DenoiserOptions = DenoiserOptions(device="auto"),
+    oidn_blend: bool = True,
+) -> FullImageDenoiser:
     """The trained denoiser from `weights` (default: `default_weights`), run as `options` say (its device may
     also be "auto": a CUDA GPU where torch sees one, else the CPU): the engine, ensemble, dark pass and
     keeping of resolved detail (model/inference/options.py), blended with OIDN where the weights ship a
     blend and `oidn_blend` (train.oidn_blend)."""
-    return load_denoiser(weights or default_weights(cfg), replace(options, device=resolve_device(options.device)),
-                         oidn_blend=oidn_blend)
+    return load_denoiser(
+        weights or default_weights(cfg), replace(options, device=resolve_device(options.device)), oidn_blend=oidn_blend
+    )

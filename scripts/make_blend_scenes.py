@@ -8,6 +8,7 @@ The same --seed writes the same scenes (scenes.json beside them lists what the s
 place, its colour); each file's own resolution is --resolution (what `corpus.xml_resolution = "film"`
 renders at).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,8 +25,9 @@ from admc.pipeline.render.blender.locate import require_blender
 BUILDER = Path(__file__).resolve().parents[1] / "pipeline" / "render" / "blender" / "build_scenes.py"
 
 
-def make_scenes(out_dir: Path, scenes: int, seed: int = 0, resolution: tuple[int, int] = (256, 256),
-                blender: str = "") -> list[Path]:
+def make_scenes(
+    out_dir: Path, scenes: int, seed: int = 0, resolution: tuple[int, int] = (256, 256), blender: str = ""
+) -> list[Path]:
     """Write the scenes into out_dir (created); returns their paths."""
     command = require_blender(blender, "scripts/make_blend_scenes.py")
     out_dir = Path(out_dir).resolve()
@@ -33,8 +35,9 @@ def make_scenes(out_dir: Path, scenes: int, seed: int = 0, resolution: tuple[int
     with tempfile.TemporaryDirectory(prefix="admc-blend-build-") as folder:
         job = Path(folder) / "job.json"
         job.write_text(json.dumps({"out_dir": folder, "scenes": scenes, "seed": seed, "resolution": list(resolution)}))
-        out = subprocess.run([*command, str(BUILDER), "--", str(job)], capture_output=True, text=True,
-                             stdin=subprocess.DEVNULL)
+        out = subprocess.run(
+            [*command, str(BUILDER), "--", str(job)], capture_output=True, text=True, stdin=subprocess.DEVNULL
+        )
         done = Path(folder) / "done.json"
         if out.returncode != 0 or not done.is_file():
             raise AdmcError(f"scripts/make_blend_scenes.py: Blender failed: {out.stderr.strip()[-2000:]}")
@@ -54,8 +57,9 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=12)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--resolution", type=int, nargs=2, default=(256, 256), metavar=("WIDTH", "HEIGHT"))
-    parser.add_argument("--blender", default="", help="a Blender executable or a Python with bpy (default: as "
-                                                      "render.blender finds it)")
+    parser.add_argument(
+        "--blender", default="", help="a Blender executable or a Python with bpy (default: as render.blender finds it)"
+    )
     args = parser.parse_args()
     if args.scenes < 1 or min(args.resolution) < 1:
         parser.error("--scenes and --resolution must be positive")

@@ -18,6 +18,7 @@ split by frame into train / val / test is what a studio has: its own set, new ca
 Textures and meshes are written beside the XML files as EXR and OBJ. The same seed writes the same
 files on any machine; another seed, another set.
 """
+
 import argparse
 import sys
 from pathlib import Path
@@ -32,8 +33,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out_dir", type=Path, help="folder to write the frames into (created if missing)")
     parser.add_argument("--domain", choices=sorted(DOMAINS), default="cbox", help="which domain (default cbox)")
-    parser.add_argument("--frames", "--scenes", type=int, default=24, dest="frames",
-                        help="how many frames (default 24)")
+    parser.add_argument(
+        "--frames", "--scenes", type=int, default=24, dest="frames", help="how many frames (default 24)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="the same seed writes the same set (default 0)")
     args = parser.parse_args()
     if args.frames < 1:

@@ -13,6 +13,7 @@ from keeps more of what those did well than either end (docs/results/2026-12-03-
 The manifest is what `admc-pipe train --stage finetune` (and denoise/eval without --weights) search for
 weights matching the configured [model]; an entry for the same architecture is replaced.
 """
+
 import argparse
 import csv
 import hashlib
@@ -39,13 +40,23 @@ def shipped_validation(run: Path, selected: dict) -> dict:
 
 def blended(start: dict, end: dict, share: float) -> dict:
     """{branch: {net: state}}: (1 - share) x start + share x end for every float tensor (others from end)."""
-    return {branch: {net: {key: (1 - share) * start[branch][net][key].float() + share * value.float()
-                           if value.is_floating_point() else value for key, value in state.items()}
-                     for net, state in nets.items()} for branch, nets in end.items()}
+    return {
+        branch: {
+            net: {
+                key: (1 - share) * start[branch][net][key].float() + share * value.float()
+                if value.is_floating_point()
+                else value
+                for key, value in state.items()
+            }
+            for net, state in nets.items()
+        }
+        for branch, nets in end.items()
+    }
 
 
-def export_checkpoint(path: Path, target: Path, blend_from: Path | None = None,
-                      share: float = 1.0) -> tuple[dict, dict]:
+def export_checkpoint(
+    path: Path, target: Path, blend_from: Path | None = None, share: float = 1.0
+) -> tuple[dict, dict]:
     """Write `path`'s networks (moving average where the run kept one), blended with `blend_from`'s if
     given, as fp16 weights at `target`; (its checkpoint, the selection it records)."""
     checkpoint = load_checkpoint(path)
@@ -58,11 +69,20 @@ def export_checkpoint(path: Path, target: Path, blend_from: Path | None = None,
         nets = blended(start, nets, share)
         chosen.update(blend_from=str(blend_from), blend=share)
     selected = {branch: dict(chosen) for branch in nets}
-    export_weights(target, nets, {"model": model, "transform": transform,
-                                  "patch_size": checkpoint["store"]["patch_size"], "stage": checkpoint["stage"],
-                                  "step": checkpoint["step"], "selected": selected,
-                                  "store_fingerprint": checkpoint["store"]["fingerprint"],
-                                  "precision": checkpoint["precision"]})
+    export_weights(
+        target,
+        nets,
+        {
+            "model": model,
+            "transform": transform,
+            "patch_size": checkpoint["store"]["patch_size"],
+            "stage": checkpoint["stage"],
+            "step": checkpoint["step"],
+            "selected": selected,
+            "store_fingerprint": checkpoint["store"]["fingerprint"],
+            "precision": checkpoint["precision"],
+        },
+    )
     return checkpoint, selected
 
 
@@ -90,10 +110,18 @@ def main() -> None:
         checkpoint = load_checkpoint(args.run / "checkpoint.pt")
         shutil.copyfile(args.run / "weights-fp16.pt", target)
         model, selected = weights["metadata"]["model"], weights["metadata"].get("selected", {})
-    entry = {"file": target.name, "model": model, "stage": checkpoint["stage"],
-             "steps": checkpoint["step"], "settings": checkpoint["settings"], "selected": selected,
-             "validation": {} if args.blend_from else shipped_validation(args.run, selected), "note": args.note,
-             "sha256": hashlib.sha256(target.read_bytes()).hexdigest(), "bytes": target.stat().st_size}
+    entry = {
+        "file": target.name,
+        "model": model,
+        "stage": checkpoint["stage"],
+        "steps": checkpoint["step"],
+        "settings": checkpoint["settings"],
+        "selected": selected,
+        "validation": {} if args.blend_from else shipped_validation(args.run, selected),
+        "note": args.note,
+        "sha256": hashlib.sha256(target.read_bytes()).hexdigest(),
+        "bytes": target.stat().st_size,
+    }
     manifest_path = args.to / "manifest.json"
     manifest = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {"weights": []}
     same = ModelSettings.from_saved(entry["model"])  # one shipped file per architecture: replace its entry

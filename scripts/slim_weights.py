@@ -9,6 +9,7 @@ images. Fine-tune it with the full weights as teacher:
 `admc-pipe train --stage finetune --init OUT --set model.cfm_per_block=1 --set model.condition_layers=1
 --set train.distill_from=WEIGHTS ...` (docs/results/2026-12-03-slim-generator.md).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,14 +30,24 @@ from admc.stores.checkpoints import export_weights, load_weights
 from admc.stores.patches import PatchReader
 
 
-def read_batch(store: Path, branch: str, model: ModelSettings, transform: dict, patches: int,
-               seed: int) -> dict[str, Tensor]:
-    reader = PatchReader(store, "train", expect_transform=transform, branch=branch,
-                         base=model.base if model.base in BASE_QUALITIES else None, noise=model.noise_input)
+def read_batch(
+    store: Path, branch: str, model: ModelSettings, transform: dict, patches: int, seed: int
+) -> dict[str, Tensor]:
+    reader = PatchReader(
+        store,
+        "train",
+        expect_transform=transform,
+        branch=branch,
+        base=model.base if model.base in BASE_QUALITIES else None,
+        noise=model.noise_input,
+    )
     rows = np.random.default_rng(seed).choice(len(reader), size=min(patches, len(reader)), replace=False)
     items = [reader[int(row)] for row in rows]
-    return {key: torch.from_numpy(np.stack([item[key] for item in items]))
-            for key in ("noisy", "features", "base") if key in items[0]}
+    return {
+        key: torch.from_numpy(np.stack([item[key] for item in items]))
+        for key in ("noisy", "features", "base")
+        if key in items[0]
+    }
 
 
 def main() -> None:
@@ -62,11 +73,16 @@ def slim_weights(args: argparse.Namespace) -> None:
     if model.backbone != "residual":
         raise SystemExit(f"{args.weights}: model.backbone {model.backbone!r}; only the residual body is slimmed here")
     slim_model = dataclasses.replace(model, cfm_per_block=args.cfm_per_block, condition_layers=args.condition_layers)
-    if (args.cfm_per_block > model.cfm_per_block or args.condition_layers > model.condition_layers
-            or slim_model == model):
-        raise SystemExit(f"{args.weights}: has cfm_per_block {model.cfm_per_block} and condition_layers "
-                         f"{model.condition_layers}; asked for {args.cfm_per_block} and {args.condition_layers}, "
-                         "which is not slimmer")
+    if (
+        args.cfm_per_block > model.cfm_per_block
+        or args.condition_layers > model.condition_layers
+        or slim_model == model
+    ):
+        raise SystemExit(
+            f"{args.weights}: has cfm_per_block {model.cfm_per_block} and condition_layers "
+            f"{model.condition_layers}; asked for {args.cfm_per_block} and {args.condition_layers}, "
+            "which is not slimmer"
+        )
     branches = {}
     for branch, nets in saved["branches"].items():
         full = build_generator(model).eval()
@@ -78,13 +94,16 @@ def slim_weights(args: argparse.Namespace) -> None:
             inputs = (batch["noisy"], batch["features"], batch.get("base"))
             full_out, slim_out = full(*inputs), slim(*inputs)
         gap = (slim_out - full_out).abs().mean().item() / full_out.abs().mean().item()
-        print(f"{branch}: slim output differs from the full one by {gap:.4f} of its mean (log domain, "
-              f"{len(batch['noisy'])} fitting patches)")
+        print(
+            f"{branch}: slim output differs from the full one by {gap:.4f} of its mean (log domain, "
+            f"{len(batch['noisy'])} fitting patches)"
+        )
         branches[branch] = {"generator": slim.state_dict(), "critic": nets["critic"]}
-    provenance = (f"slimmed from {args.weights} by scripts/slim_weights.py on {args.store} (train split, "
-                  f"{args.patches} patches per branch, seed {args.seed})")
-    export_weights(args.out, branches, {**metadata, "model": dataclasses.asdict(slim_model),
-                                        "provenance": provenance})
+    provenance = (
+        f"slimmed from {args.weights} by scripts/slim_weights.py on {args.store} (train split, "
+        f"{args.patches} patches per branch, seed {args.seed})"
+    )
+    export_weights(args.out, branches, {**metadata, "model": dataclasses.asdict(slim_model), "provenance": provenance})
     print(f"wrote {args.out}")
 
 

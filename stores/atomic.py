@@ -3,6 +3,7 @@
 A reader (or a resumed run) therefore sees either the old state or the complete new one, never
 a half-written file, even if the writer is killed with SIGKILL or the machine loses power.
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -6,6 +6,7 @@ weights hold only the networks, cast to float16 (half the bytes), plus the metad
 to check compatibility (architecture, transform spec, patch size). Both load with
 weights_only=True: no arbitrary code runs when opening a downloaded file.
 """
+
 from __future__ import annotations
 
 import os
@@ -45,8 +46,10 @@ def _unreadable(head: bytes, exc: Exception) -> str:
         return "the file is empty"
     unsafe = re.search(r"GLOBAL (\S+)", str(exc))
     if unsafe:  # torch's weights-only unpickler refused a Python object: what a malicious file smuggles in
-        return (f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values: not a weights file "
-                "admc wrote (admc does not unpickle objects)")
+        return (
+            f"it holds Python objects ({unsafe.group(1)}) besides tensors and plain values: not a weights file "
+            "admc wrote (admc does not unpickle objects)"
+        )
     if head.startswith(b"\x80"):  # a bare pickle's protocol opcode
         return "it is a bare Python pickle, not a weights file admc wrote (admc does not unpickle objects)"
     if head.startswith(b"PK"):  # torch's own zip format
@@ -77,8 +80,9 @@ def _load(path: Path, *formats: str) -> dict:
         found = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
         raise CheckpointError(f"{path}: not an {' or '.join(formats)} file (format={found!r})")
     if obj.get("format_version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: {obj['format']} format_version {obj.get('format_version')!r}, "
-                              f"this code reads {FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{path}: {obj['format']} format_version {obj.get('format_version')!r}, this code reads {FORMAT_VERSION}"
+        )
     return obj
 
 
@@ -94,8 +98,10 @@ def load_network(net: torch.nn.Module, state: dict, where: str, architecture: st
     problems = []
     if reshaped:
         first = reshaped[0]
-        problems.append(f"{len(reshaped)} tensor(s) of another shape (first {first}: {shape[first]} in the file, "
-                        f"{list(expected[first].shape)} in the model)")
+        problems.append(
+            f"{len(reshaped)} tensor(s) of another shape (first {first}: {shape[first]} in the file, "
+            f"{list(expected[first].shape)} in the model)"
+        )
     if missing:
         problems.append(f"{len(missing)} missing (first {missing[0]})")
     if unexpected:
@@ -105,8 +111,10 @@ def load_network(net: torch.nn.Module, state: dict, where: str, architecture: st
     for name, tensor in state.items():  # NaN weights would run and write black images without a word
         if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             count = int((~torch.isfinite(tensor)).sum())
-            raise CheckpointError(f"{where} weights hold {count} non-finite value(s) (NaN or Inf) in tensor {name}: "
-                                  "the file is damaged or comes from a diverged training; use other weights")
+            raise CheckpointError(
+                f"{where} weights hold {count} non-finite value(s) (NaN or Inf) in tensor {name}: "
+                "the file is damaged or comes from a diverged training; use other weights"
+            )
     net.load_state_dict(state)
 
 
@@ -121,12 +129,15 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def _half(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    return {k: v.detach().to("cpu", torch.float16) if v.is_floating_point() else v.detach().cpu()
-            for k, v in state_dict.items()}
+    return {
+        k: v.detach().to("cpu", torch.float16) if v.is_floating_point() else v.detach().cpu()
+        for k, v in state_dict.items()
+    }
 
 
-def export_weights(path: str | os.PathLike, branches: dict[str, dict[str, dict[str, torch.Tensor]]],
-                   metadata: dict[str, Any]) -> None:
+def export_weights(
+    path: str | os.PathLike, branches: dict[str, dict[str, dict[str, torch.Tensor]]], metadata: dict[str, Any]
+) -> None:
     """Write {branch: {"generator": state_dict, "critic": state_dict}} as float16, atomically.
 
     `metadata` (model settings, transform spec, patch size, provenance) is stored alongside and
@@ -136,9 +147,15 @@ def export_weights(path: str | os.PathLike, branches: dict[str, dict[str, dict[s
         missing = {"generator", "critic"} - set(nets)
         if missing:
             raise ValueError(f"export_weights {path}: branch {name!r} lacks {sorted(missing)}")
-    _save(Path(path), {"format": WEIGHTS_FORMAT, "format_version": FORMAT_VERSION, "metadata": metadata,
-                       "branches": {name: {net: _half(sd) for net, sd in nets.items()}
-                                    for name, nets in branches.items()}})
+    _save(
+        Path(path),
+        {
+            "format": WEIGHTS_FORMAT,
+            "format_version": FORMAT_VERSION,
+            "metadata": metadata,
+            "branches": {name: {net: _half(sd) for net, sd in nets.items()} for name, nets in branches.items()},
+        },
+    )
 
 
 def load_weights(path: str | os.PathLike) -> dict[str, Any]:
@@ -170,8 +187,10 @@ def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     try:
         if obj["format"] == WEIGHTS_FORMAT:
             return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
-        nets = {b: {"generator": s.get("average", s["generator"]), "critic": s["critic"]}
-                for b, s in obj["branches"].items()}
+        nets = {
+            b: {"generator": s.get("average", s["generator"]), "critic": s["critic"]}
+            for b, s in obj["branches"].items()
+        }
         return nets, obj["model"], obj["transform"]
     except (KeyError, TypeError, AttributeError) as exc:
         raise CheckpointError(f"{path}: a malformed {obj['format']} file (no {exc} entry where expected)") from None

@@ -4,6 +4,7 @@ One EXR per (scene, spp) holds every buffer as `layer.channel` (e.g. `diffuse.R`
 Noisy renders are stored in half precision, references in float. Every failure raises ExrError
 naming the file and what is wrong, so a bad file in a corpus of thousands is found at once.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -22,22 +23,43 @@ from admc.stores.atomic import publishing
 NONNEGATIVE_LAYERS = frozenset(name for name, layer in LAYERS.items() if layer.low >= 0)
 PRECISIONS = {"half": np.float16, "float": np.float32}
 # Header attributes OpenEXR manages itself: user attributes must not shadow them.
-RESERVED_ATTRIBUTES = frozenset({
-    "channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
-    "screenWindowCenter", "screenWindowWidth", "type", "tiles", "name", "version", "chunkCount",
-})
+RESERVED_ATTRIBUTES = frozenset(
+    {
+        "channels",
+        "compression",
+        "dataWindow",
+        "displayWindow",
+        "lineOrder",
+        "pixelAspectRatio",
+        "screenWindowCenter",
+        "screenWindowWidth",
+        "type",
+        "tiles",
+        "name",
+        "version",
+        "chunkCount",
+    }
+)
 EXR_MAGIC = b"\x76\x2f\x31\x01"
-KNOWN_MAGIC = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"#?RA": "a Radiance HDR image",
-               b"#?RG": "a Radiance HDR image", b"PF\n": "a PFM image", b"Pf\n": "a PFM image",
-               b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image"}
+KNOWN_MAGIC = {
+    b"\x89PNG": "a PNG image",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"#?RA": "a Radiance HDR image",
+    b"#?RG": "a Radiance HDR image",
+    b"PF\n": "a PFM image",
+    b"Pf\n": "a PFM image",
+    b"II*\x00": "a TIFF image",
+    b"MM\x00*": "a TIFF image",
+}
 
 
 class ExrError(AdmcError, ValueError):
     """An image file is missing, unreadable, or does not hold what was asked for."""
 
 
-def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "half",
-              attributes: dict[str, str] | None = None) -> None:
+def write_exr(
+    path: Path, layers: dict[str, np.ndarray], *, precision: str = "half", attributes: dict[str, str] | None = None
+) -> None:
     """Write `layers` (name -> (H, W, C) array) to one EXR, atomically (temp name, then rename).
 
     Half precision refuses finite values beyond +-65504 (they would silently become inf): sanitize
@@ -59,9 +81,11 @@ def write_exr(path: Path, layers: dict[str, np.ndarray], *, precision: str = "ha
             stored = np.asarray(array).astype(dtype)
         overflow = np.isinf(stored) & np.isfinite(array)
         if overflow.any():
-            raise ExrError(f"{path}: layer {name!r} has {int(overflow.sum())} finite values beyond "
-                           f"+-{FP16_MAX:g} that half precision would turn into inf; clamp them or use "
-                           f"precision='float'")
+            raise ExrError(
+                f"{path}: layer {name!r} has {int(overflow.sum())} finite values beyond "
+                f"+-{FP16_MAX:g} that half precision would turn into inf; clamp them or use "
+                f"precision='float'"
+            )
         for i, channel in enumerate(LAYERS[name].channels):
             channels[_full_name(name, channel)] = np.ascontiguousarray(stored[:, :, i])
     with publishing(path) as tmp, tmp.open("wb") as stream:  # through Python: a full disk raises OSError
@@ -145,8 +169,9 @@ def read_exr(path: Path, layers: list[str] | None = None) -> dict[str, np.ndarra
             raise ExrError(f"{path}: has no layer {name!r}; it holds {holds}")
         missing = [c for c in LAYERS[name].channels if c not in present[name]]
         if missing:
-            raise ExrError(f"{path}: layer {name!r} lacks channel(s) {', '.join(missing)} "
-                           f"(has {', '.join(present[name])})")
+            raise ExrError(
+                f"{path}: layer {name!r} lacks channel(s) {', '.join(missing)} (has {', '.join(present[name])})"
+            )
     lo, hi = exr.header()["dataWindow"]
     size = (int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
     pixels = exr.channels()
@@ -156,8 +181,10 @@ def read_exr(path: Path, layers: list[str] | None = None) -> dict[str, np.ndarra
         for channel in LAYERS[name].channels:
             plane = pixels[_full_name(name, channel)].pixels
             if plane.shape != size:
-                raise ExrError(f"{path}: channel {name}.{channel} is {plane.shape[0]}x{plane.shape[1]}, "
-                               f"the image is {size[0]}x{size[1]} (subsampled channels are not supported)")
+                raise ExrError(
+                    f"{path}: channel {name}.{channel} is {plane.shape[0]}x{plane.shape[1]}, "
+                    f"the image is {size[0]}x{size[1]} (subsampled channels are not supported)"
+                )
             planes.append(plane.astype(np.float32))
         out[name] = np.stack(planes, axis=-1)
     return out
@@ -187,8 +214,9 @@ def read_image(path: Path) -> np.ndarray:
     return pixels.reshape(spec.height, spec.width, spec.nchannels)
 
 
-def nonfinite_report(layers: dict[str, np.ndarray],
-                     negative_layers: Iterable[str] = NONNEGATIVE_LAYERS) -> dict[str, dict[str, int]]:
+def nonfinite_report(
+    layers: dict[str, np.ndarray], negative_layers: Iterable[str] = NONNEGATIVE_LAYERS
+) -> dict[str, dict[str, int]]:
     """Count NaN, +inf, -inf (and negatives where they are invalid) per layer; only layers with any."""
     negative_layers = frozenset(negative_layers)
     report = {}

@@ -3,6 +3,7 @@
 Separate from `exr.py` (admc's own layers), whose source is part of the render tasks' code version: a
 change here re-renders nothing.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -13,6 +14,7 @@ import OpenEXR
 
 from admc.stores.atomic import publishing
 from admc.stores.exr import RESERVED_ATTRIBUTES, ExrError, _open_exr
+
 
 def read_channels(path: Path, names: Iterable[str] | None = None) -> tuple[dict, dict[str, np.ndarray]]:
     """Every part of an EXR: (the first part's header, {full channel name: float32 (H, W) plane}).
@@ -38,8 +40,10 @@ def read_channels(path: Path, names: Iterable[str] | None = None) -> tuple[dict,
                 continue
             plane = np.asarray(channel.pixels)
             if plane.shape != size:
-                raise ExrError(f"{path}: channel {name} is {plane.shape[0]}x{plane.shape[1]}, the image is "
-                               f"{size[0]}x{size[1]} (subsampled channels and parts of other sizes are not supported)")
+                raise ExrError(
+                    f"{path}: channel {name} is {plane.shape[0]}x{plane.shape[1]}, the image is "
+                    f"{size[0]}x{size[1]} (subsampled channels and parts of other sizes are not supported)"
+                )
             planes[name] = plane.astype(np.float32)
     return header, planes
 

@@ -1,4 +1,5 @@
 """Shared fixtures. Tests render with the best JIT variant this machine has (llvm_ad_rgb on CI)."""
+
 from collections import defaultdict
 
 import pytest
@@ -47,9 +48,17 @@ def one_torch_thread():
 
 def tiny_store_overrides(workdir, size: int, patch: int) -> list[str]:
     """The `--set` values of a 4-scene corpus rendered at size x size (seconds to build)."""
-    return [f"run.workdir='{workdir}'", "run.scheduler=sync", f"render.resolution=[{size}, {size}]",
-            "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-            f"tile.patch_size={patch}", "tile.crops_per_scene=3", "tile.split=[0.5, 0.5, 0.0]"]
+    return [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        f"render.resolution=[{size}, {size}]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=16",
+        "corpus.n_scenes=4",
+        f"tile.patch_size={patch}",
+        "tile.crops_per_scene=3",
+        "tile.split=[0.5, 0.5, 0.0]",
+    ]
 
 
 def preset(name: str):

@@ -1,5 +1,6 @@
 """Functions the distributed tests run inside launched ranks: a module of its own, so that each rank
 imports only torch and admc.model, not the test module's render and pipeline imports."""
+
 import torch
 
 from admc.model.training import distributed

@@ -3,6 +3,7 @@
 Real EXR files, real pyoidn, real arrays. The adapter is compared with pyoidn called directly on the
 same bits: the same library call on the same input is deterministic, so equality is exact.
 """
+
 import numpy as np
 import OpenEXR
 import pyoidn
@@ -32,16 +33,36 @@ EXPECTED = {
     "specular_var": [0.0, VARIANCE_MAX, 0.0, 0.0, 0.5, VARIANCE_MAX],
 }
 # The channels of an admc EXR: the file format users' renders and our outputs share.
-EXR_CHANNELS = {"R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B",
-                "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Z", "coverage.A",
-                "diffuse_var.R", "diffuse_var.G", "diffuse_var.B", "specular_var.R", "specular_var.G",
-                "specular_var.B"}
+EXR_CHANNELS = {
+    "R",
+    "G",
+    "B",
+    "diffuse.R",
+    "diffuse.G",
+    "diffuse.B",
+    "specular.R",
+    "specular.G",
+    "specular.B",
+    "albedo.R",
+    "albedo.G",
+    "albedo.B",
+    "normal.X",
+    "normal.Y",
+    "normal.Z",
+    "depth.Z",
+    "coverage.A",
+    "diffuse_var.R",
+    "diffuse_var.G",
+    "diffuse_var.B",
+    "specular_var.R",
+    "specular_var.G",
+    "specular_var.B",
+}
 
 
 def test_every_exr_layer_is_in_the_schema_with_its_channels(tmp_path):
     rng = np.random.default_rng(0)
-    layers = {name: rng.uniform(0, 1, (5, 7, len(layer.channels))).astype(np.float32)
-              for name, layer in LAYERS.items()}
+    layers = {name: rng.uniform(0, 1, (5, 7, len(layer.channels))).astype(np.float32) for name, layer in LAYERS.items()}
     write_exr(tmp_path / "all.exr", layers, precision="float")
     written = {c.name for c in OpenEXR.File(str(tmp_path / "all.exr")).header()["channels"]}
     assert written == EXR_CHANNELS
@@ -65,9 +86,13 @@ def test_the_transform_spec_keeps_the_rules_the_shipped_weights_were_trained_wit
     """Weights and patch stores record these rules and are refused when they change."""
     radiance = {"nan": 0.0, "min": 0.0, "max": 65504.0}
     assert transform_spec()["sanitize"] == {
-        "diffuse": radiance, "specular": radiance, "albedo": {"nan": 0.0, "min": 0.0, "max": 1.0},
-        "normal": {"nan": 0.0, "min": -1.0, "max": 1.0}, "depth": {"nan": 0.0, "min": 0.0, "max": None},
-        "coverage": {"nan": 0.0, "min": 0.0, "max": 1.0}}
+        "diffuse": radiance,
+        "specular": radiance,
+        "albedo": {"nan": 0.0, "min": 0.0, "max": 1.0},
+        "normal": {"nan": 0.0, "min": -1.0, "max": 1.0},
+        "depth": {"nan": 0.0, "min": 0.0, "max": None},
+        "coverage": {"nan": 0.0, "min": 0.0, "max": 1.0},
+    }
 
 
 @pytest.mark.parametrize("name", list(LAYERS))
@@ -115,17 +140,21 @@ def test_one_bad_value_in_a_clean_layer_is_repaired_as_in_a_dirty_one(name):
 
 
 def test_nonfinite_report_flags_negatives_where_the_schema_forbids_them():
-    report = nonfinite_report({name: np.full((2, 2, len(layer.channels)), -0.5, np.float32)
-                               for name, layer in LAYERS.items()})
+    report = nonfinite_report(
+        {name: np.full((2, 2, len(layer.channels)), -0.5, np.float32) for name, layer in LAYERS.items()}
+    )
     assert set(report) == set(LAYERS) - {"normal"}
 
 
 def _image(rng, h=24, w=20):
     normal = rng.normal(size=(h, w, 3)).astype(np.float32)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    return {"diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
-            "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
-            "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32), "normal": normal}
+    return {
+        "diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
+        "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
+        "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32),
+        "normal": normal,
+    }
 
 
 @pytest.mark.parametrize("quality", oidn.QUALITIES)
@@ -133,7 +162,8 @@ def test_oidn_adapter_passes_its_quality_to_pyoidn(quality):
     layers = _image(np.random.default_rng(1))
     guided = oidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], quality=quality)
     np.testing.assert_array_equal(
-        guided, pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality=quality))
+        guided, pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality=quality)
+    )
     alone = oidn.denoise(layers["specular"], quality=quality)
     np.testing.assert_array_equal(alone, pyoidn.denoise(layers["specular"], hdr=True, quality=quality))
 
@@ -169,8 +199,9 @@ def test_the_refiners_bases_are_oidn_at_the_qualities_their_base_names(base):
     quality = BASE_QUALITIES[base]
     layers = _image(np.random.default_rng(4))
     bases = oidn_bases(layers, base)
-    diffuse = pyoidn.denoise(layers["diffuse"], layers["albedo"], layers["normal"], hdr=True,
-                             quality=quality["diffuse"])
+    diffuse = pyoidn.denoise(
+        layers["diffuse"], layers["albedo"], layers["normal"], hdr=True, quality=quality["diffuse"]
+    )
     specular = pyoidn.denoise(layers["specular"], hdr=True, quality=quality["specular"])
     np.testing.assert_array_equal(bases["diffuse"], np.maximum(diffuse, 0.0))
     np.testing.assert_array_equal(bases["specular"], np.maximum(specular, 0.0))

@@ -3,6 +3,7 @@
 Task functions are module-level so the process scheduler can pickle them. Every call appends a
 file to a log folder outside the cache, so a test can count exactly which tasks ran.
 """
+
 import os
 import signal
 import subprocess
@@ -40,9 +41,16 @@ def calls(log: Path) -> list[str]:
 
 def graph(log: Path) -> dict[str, Task]:
     """a, b, e independent; c = a + b; d = c + a (a diamond plus a loose task, two stages)."""
+
     def task(stage, name, value, **inputs):
-        return Task(stage=stage, label=f"{name} task", fn=add_values,
-                    params={"name": name, "value": value, "log": str(log)}, inputs=inputs)
+        return Task(
+            stage=stage,
+            label=f"{name} task",
+            fn=add_values,
+            params={"name": name, "value": value, "log": str(log)},
+            inputs=inputs,
+        )
+
     a, b, e = task("alpha", "a", 1.0), task("alpha", "b", 2.0), task("alpha", "e", 5.0)
     c = task("beta", "c", 10.0, x=a, y=b)
     d = task("beta", "d", 100.0, up=c, a=a)
@@ -52,8 +60,9 @@ def graph(log: Path) -> dict[str, Task]:
 def run_graph(cache_root: str, log: str, scheduler: str = "sync", workers=None) -> dict:
     """Entry point for the subprocess tests."""
     tasks = graph(Path(log))
-    return run([tasks["d"], tasks["e"]], TaskCache(Path(cache_root)), scheduler=scheduler, workers=workers,
-               progress=False)
+    return run(
+        [tasks["d"], tasks["e"]], TaskCache(Path(cache_root)), scheduler=scheduler, workers=workers, progress=False
+    )
 
 
 @pytest.fixture
@@ -73,6 +82,7 @@ def tmp_leftovers(cache: TaskCache) -> list[str]:
 
 # --- keys -------------------------------------------------------------------------------------------
 
+
 def test_key_is_stable_and_depends_on_params_inputs_and_code(log):
     tasks, again = graph(log), graph(log)
     assert {n: t.key for n, t in tasks.items()} == {n: t.key for n, t in again.items()}
@@ -91,8 +101,10 @@ def test_key_is_stable_and_depends_on_params_inputs_and_code(log):
 
 
 def test_key_is_the_same_in_another_process(log):
-    script = ("import sys; from pathlib import Path; import test_cache_runner as t; "
-              f"print(' '.join(x.key for x in t.graph(Path({str(log)!r})).values()))")
+    script = (
+        "import sys; from pathlib import Path; import test_cache_runner as t; "
+        f"print(' '.join(x.key for x in t.graph(Path({str(log)!r})).values()))"
+    )
     env = {**os.environ, "PYTHONPATH": str(TESTS_DIR), "PYTHONHASHSEED": "123"}
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == [t.key for t in graph(log).values()]
@@ -103,6 +115,7 @@ def test_code_version_follows_the_source_file(tmp_path, monkeypatch):
     module_file.write_text("def body():\n    return 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     import stage_impl
+
     before = code_version(stage_impl.body)
     assert code_version(stage_impl) == before
     module_file.write_text("def body():\n    return 2\n")
@@ -130,6 +143,7 @@ def test_collect_dedupes_and_orders_upstream_first(log):
 
 
 # --- cache ------------------------------------------------------------------------------------------
+
 
 def test_run_task_publishes_with_manifest_and_skips_when_done(tmp_path, log):
     cache, a = TaskCache(tmp_path / "cache"), graph(log)["a"]
@@ -170,8 +184,9 @@ def test_second_publisher_of_a_key_discards_its_output(tmp_path, log):
     cache = TaskCache(tmp_path / "cache")
     (log / "race").touch()
     path = cache.run_task(Task("alpha", "race", race, params={"log": str(log)}), {})
-    assert (path / "who").read_text() == "fast" and cache.summary(Task("alpha", "race", race,
-                                                                            params={"log": str(log)})) == {"who": "fast"}
+    assert (path / "who").read_text() == "fast" and cache.summary(
+        Task("alpha", "race", race, params={"log": str(log)})
+    ) == {"who": "fast"}
     assert tmp_leftovers(cache) == []
 
 
@@ -181,7 +196,12 @@ def test_entries_and_clear_by_stage(tmp_path, log):
     run(list(tasks.values()), cache, progress=False)
     entries = cache.entries()
     assert sorted((e["stage"], e["label"]) for e in entries) == [
-        ("alpha", "a task"), ("alpha", "b task"), ("alpha", "e task"), ("beta", "c task"), ("beta", "d task")]
+        ("alpha", "a task"),
+        ("alpha", "b task"),
+        ("alpha", "e task"),
+        ("beta", "c task"),
+        ("beta", "d task"),
+    ]
     assert all(e["bytes"] > len("1.0") and e["created"] for e in entries)
     assert cache.clear("beta") == 2
     assert not cache.is_done(tasks["c"]) and cache.is_done(tasks["a"]) and len(cache.entries()) == 3
@@ -195,6 +215,7 @@ def test_clean_stale_tmp_keeps_live_runs(tmp_path, log):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     from admc.pipeline.engine.cache import _host_id
+
     live = cache.tmp_root / f"{'0' * 20}.{_host_id()}.{os.getpid()}.abcd1234"
     stale = cache.tmp_root / f"{'1' * 20}.{_host_id()}.{dead.pid}.abcd1234"
     for folder in (live, stale):
@@ -205,6 +226,7 @@ def test_clean_stale_tmp_keeps_live_runs(tmp_path, log):
 
 
 # --- runner -----------------------------------------------------------------------------------------
+
 
 def test_sync_run_executes_each_task_once_then_nothing(tmp_path, log, capfd):
     cache, tasks = TaskCache(tmp_path / "cache"), graph(log)

@@ -1,4 +1,5 @@
 """The command line as a person meets it: --help, wrong arguments, missing files."""
+
 import json
 import subprocess
 import sys
@@ -32,16 +33,21 @@ HEAVY = ("torch", "mitsuba", "openvino")
 """Modules that take seconds to import: the CLI must not load them before it needs them."""
 
 
-def invoke_in_fresh_python(*calls: list[str], cwd=None, watch: tuple[str, ...] = HEAVY) -> list[tuple[int, list[str], str]]:
+def invoke_in_fresh_python(
+    *calls: list[str], cwd=None, watch: tuple[str, ...] = HEAVY
+) -> list[tuple[int, list[str], str]]:
     """Run each call's CLI arguments in turn in one new interpreter; per call its exit code, the `watch`ed
     packages loaded so far (a package counts as loaded when it or any of its modules is) and its output."""
-    code = ("import json, sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
-            "for args in json.loads(sys.argv[1]):\n"
-            "    result = CliRunner().invoke(app, args)\n"
-            f"    loaded = [w for w in {watch!r} if any(m == w or m.startswith(w + '.') for m in sys.modules)]\n"
-            "    print(json.dumps([result.exit_code, loaded, result.output]))")
-    out = subprocess.run([sys.executable, "-c", code, json.dumps(calls)], capture_output=True, text=True,
-                         timeout=120, cwd=cwd)
+    code = (
+        "import json, sys; from typer.testing import CliRunner; from admc.cli.app import app\n"
+        "for args in json.loads(sys.argv[1]):\n"
+        "    result = CliRunner().invoke(app, args)\n"
+        f"    loaded = [w for w in {watch!r} if any(m == w or m.startswith(w + '.') for m in sys.modules)]\n"
+        "    print(json.dumps([result.exit_code, loaded, result.output]))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, json.dumps(calls)], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
     assert out.returncode == 0, out.stderr
     return [tuple(json.loads(line)) for line in out.stdout.splitlines()]
 
@@ -58,8 +64,9 @@ def test_the_cli_and_its_config_load_without_torch():
 def test_denoise_names_a_bad_input_without_loading_torch(tmp_path):
     """A missing or unreadable file is reported before the weights (and torch) are loaded."""
     (tmp_path / "broken.exr").write_bytes(b"not an EXR")
-    results = invoke_in_fresh_python(["denoise", str(tmp_path / "missing.exr")],
-                                     ["denoise", str(tmp_path / "broken.exr")])
+    results = invoke_in_fresh_python(
+        ["denoise", str(tmp_path / "missing.exr")], ["denoise", str(tmp_path / "broken.exr")]
+    )
     assert [(code, loaded) for code, loaded, _ in results] == [(2, []), (2, [])]
 
 
@@ -69,8 +76,9 @@ with their format in stores/checkpoints.py, the [train] settings in model/train_
 
 
 def test_denoise_loads_no_training_module(tmp_path):
-    (code, loaded, output), = invoke_in_fresh_python(["denoise", str(_oidn_style_input(tmp_path))],
-                                                     watch=("torch", *TRAINING_STACK))
+    ((code, loaded, output),) = invoke_in_fresh_python(
+        ["denoise", str(_oidn_style_input(tmp_path))], watch=("torch", *TRAINING_STACK)
+    )
     assert code == 0, output
     assert (tmp_path / "frame.denoised.exr").is_file()
     assert loaded == ["torch"], f"denoise loaded {loaded[1:]}"
@@ -79,8 +87,10 @@ def test_denoise_loads_no_training_module(tmp_path):
 @pytest.mark.parametrize("command", ["render", "dataset", "tile", "train", "eval", "cache"])
 def test_a_bad_config_is_named_before_torch_loads(command, tmp_path):
     """Each command checks its config before importing its stage (torch, Mitsuba: seconds)."""
-    cases = {"missing.toml": [command, "--config", str(tmp_path / "missing.toml")],
-             "train.nope": [command, "--set", "train.nope=1"]}
+    cases = {
+        "missing.toml": [command, "--config", str(tmp_path / "missing.toml")],
+        "train.nope": [command, "--set", "train.nope=1"],
+    }
     results = invoke_in_fresh_python(*cases.values(), cwd=tmp_path)
     for named, (code, loaded, output) in zip(cases, results, strict=True):
         assert code == 2 and loaded == [] and named in output
@@ -114,11 +124,14 @@ def test_wrong_option_is_rejected():
     assert "no-such-option" in out.stderr
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["config", "--config", "missing.toml"], "missing.toml"),
-    (["config", "--set", "render.sppp=4"], "render.sppp"),
-    (["render", "--set", "render.variant=no_such_variant"], "no_such_variant"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["config", "--config", "missing.toml"], "missing.toml"),
+        (["config", "--set", "render.sppp=4"], "render.sppp"),
+        (["render", "--set", "render.variant=no_such_variant"], "no_such_variant"),
+    ],
+)
 def test_bad_input_is_one_clear_line(tmp_path, args, needle):
     out = run(*args, cwd=tmp_path)
     assert out.returncode == 2

@@ -4,6 +4,7 @@ as an operator would, and `admc-pipe dataset --scheduler tcp://...` as a separat
 The result must equal a local `run.scheduler=sync` run of the same config (EXR pixels and patch rows),
 and a worker SIGKILLed mid-render must cost only its running task.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,9 +26,16 @@ from admc.stores.exr import read_exr
 pytestmark = pytest.mark.slow
 
 BIN = Path(sys.executable).parent
-TINY = ["render.resolution=[32, 32]", "render.spp=[2, 4]", "render.reference_spp=16", "corpus.n_scenes=4",
-        "corpus.families=['room', 'tabletop']", "tile.patch_size=32", "tile.crops_per_scene=3",
-        "tile.split=[0.5, 0.5, 0.0]"]
+TINY = [
+    "render.resolution=[32, 32]",
+    "render.spp=[2, 4]",
+    "render.reference_spp=16",
+    "corpus.n_scenes=4",
+    "corpus.families=['room', 'tabletop']",
+    "tile.patch_size=32",
+    "tile.crops_per_scene=3",
+    "tile.split=[0.5, 0.5, 0.0]",
+]
 N_TASKS = 4 * 3 + 4  # 4 scenes x (2 noisy + 1 reference) renders, one tile task per scene
 WAIT_S = 120  # the bound on every wait: generous for a contended 2-core CI machine
 
@@ -54,25 +62,52 @@ class LoopbackCluster:
 
     def _spawn(self, name: str, args: list[str]) -> subprocess.Popen:
         log = open(self.folder / f"{name}.log", "wb")
-        proc = subprocess.Popen([str(BIN / "dask"), *args], stdout=log, stderr=subprocess.STDOUT,
-                                cwd=self.folder, start_new_session=True)
+        proc = subprocess.Popen(
+            [str(BIN / "dask"), *args], stdout=log, stderr=subprocess.STDOUT, cwd=self.folder, start_new_session=True
+        )
         log.close()
         self.procs.append(proc)
         return proc
 
     def start(self, n_workers: int) -> LoopbackCluster:
         info = self.folder / "scheduler.json"
-        scheduler = self._spawn("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                                              "--scheduler-file", str(info)])
-        self.address = _wait_for(lambda: info.is_file() and json.loads(info.read_text() or "{}").get("address")
-                                 or scheduler.poll() is not None and pytest.fail(self.logs()),
-                                 "the scheduler's address file")
+        scheduler = self._spawn(
+            "scheduler",
+            ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(info)],
+        )
+        self.address = _wait_for(
+            lambda: (
+                info.is_file()
+                and json.loads(info.read_text() or "{}").get("address")
+                or scheduler.poll() is not None
+                and pytest.fail(self.logs())
+            ),
+            "the scheduler's address file",
+        )
         for i in range(n_workers):
             # --no-nanny: the worker process is the one that renders, so a SIGKILL ends it for good
             # (under a nanny the nanny would start a fresh worker, and the lost task might rerun there).
-            self.workers.append(self._spawn(f"worker{i}", [
-                "worker", self.address, "--nthreads", "1", "--nworkers", "1", "--no-nanny", "--no-dashboard",
-                "--name", f"w{i}", "--local-directory", str(self.folder / f"w{i}"), "--death-timeout", "60"]))
+            self.workers.append(
+                self._spawn(
+                    f"worker{i}",
+                    [
+                        "worker",
+                        self.address,
+                        "--nthreads",
+                        "1",
+                        "--nworkers",
+                        "1",
+                        "--no-nanny",
+                        "--no-dashboard",
+                        "--name",
+                        f"w{i}",
+                        "--local-directory",
+                        str(self.folder / f"w{i}"),
+                        "--death-timeout",
+                        "60",
+                    ],
+                )
+            )
         from distributed import Client
 
         with Client(self.address, timeout=WAIT_S) as client:
@@ -165,8 +200,13 @@ def test_a_worker_killed_mid_render_costs_only_its_task(cluster, local_run, tmp_
     workdir = tmp_path / "on-cluster"
     tmp_root = workdir / "cache" / TMP_DIR
     log = open(tmp_path / "client.log", "w+")
-    client = subprocess.Popen(_admc(workdir, "--scheduler", cluster.address), stdout=log, stderr=subprocess.STDOUT,
-                              text=True, start_new_session=True)
+    client = subprocess.Popen(
+        _admc(workdir, "--scheduler", cluster.address),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     try:
         victim = cluster.workers[0]
 

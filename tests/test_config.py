@@ -1,4 +1,5 @@
 """Config: defaults load, overlays and overrides apply, bad keys and values are errors naming the key."""
+
 from pathlib import Path
 
 import pytest
@@ -30,16 +31,19 @@ def test_overrides_parse_toml_values_and_bare_strings():
     assert cfg.corpus.seed == 7
 
 
-@pytest.mark.parametrize("override, key", [
-    ("render.sppp=4", "render.sppp"),
-    ("rendr.spp=[4]", "rendr"),
-    ("render.spp='4'", "render.spp"),
-    ("render.spp=[0, 4]", "render.spp"),
-    ("render.resolution=[32]", "render.resolution"),
-    ("render.reference_spp=4", "render.reference_spp"),
-    ("corpus.n_scenes=true", "corpus.n_scenes"),
-    ("run.workers=-1", "run.workers"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("render.sppp=4", "render.sppp"),
+        ("rendr.spp=[4]", "rendr"),
+        ("render.spp='4'", "render.spp"),
+        ("render.spp=[0, 4]", "render.spp"),
+        ("render.resolution=[32]", "render.resolution"),
+        ("render.reference_spp=4", "render.reference_spp"),
+        ("corpus.n_scenes=true", "corpus.n_scenes"),
+        ("run.workers=-1", "run.workers"),
+    ],
+)
 def test_bad_values_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_config(None, [override])
@@ -71,18 +75,21 @@ def test_the_paper_config_is_the_settings_defaults():
     assert (paper.model, paper.train) == (ModelSettings(), TrainSettings())
 
 
-@pytest.mark.parametrize("override, key", [
-    ("train.batch_size=0", "train.batch_size"),
-    ("model.mode='cat'", "model.mode"),
-    ("train.lr_milestones=[5, 3]", "train.lr_milestones"),
-    ("train.adversarial=1", "train.adversarial"),
-    ("train.precision='float16'", "train.precision"),
-    ("train.l1_floor=0", "train.l1_floor"),
-    ("train.ssim_weight=-0.5", "train.ssim_weight"),
-    ("train.select_metric='ssim'", "train.select_metric"),
-    ("eval.ensemble=3", "eval.ensemble"),
-    ("eval.engine='tensorrt'", "eval.engine"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("train.batch_size=0", "train.batch_size"),
+        ("model.mode='cat'", "model.mode"),
+        ("train.lr_milestones=[5, 3]", "train.lr_milestones"),
+        ("train.adversarial=1", "train.adversarial"),
+        ("train.precision='float16'", "train.precision"),
+        ("train.l1_floor=0", "train.l1_floor"),
+        ("train.ssim_weight=-0.5", "train.ssim_weight"),
+        ("train.select_metric='ssim'", "train.select_metric"),
+        ("eval.ensemble=3", "eval.ensemble"),
+        ("eval.engine='tensorrt'", "eval.engine"),
+    ],
+)
 def test_model_and_train_errors_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_config(None, [override])
@@ -94,8 +101,10 @@ def test_pretrain_corpora_are_disjoint_from_the_default_corpus_and_have_their_fa
     from admc.pipeline.render.tasks import corpus
 
     default = load_config()
-    for name, families in (("pretrain", {"room", "tabletop", "studio"}),
-                           ("broad", set(FAMILIES) - set(default.corpus.held_out_families))):
+    for name, families in (
+        ("pretrain", {"room", "tabletop", "studio"}),
+        ("broad", set(FAMILIES) - set(default.corpus.held_out_families)),
+    ):
         specs = corpus(load_config(REPO / "configs" / f"{name}.toml"))
         assert len(specs) >= 100 and {s.family for s in specs} == families, name
         assert not {(s.family, s.seed) for s in specs} & {(s.family, s.seed) for s in corpus(default)}, name

@@ -1,6 +1,7 @@
 """The corpus's named constructs, each rendered for real (32x32, 4 spp unless said) in a probe scene:
 a grey floor and a sphere, lit only by what the test adds. Every check compares against the same
 scene with the construct's defining feature taken out, so it fails if the construct lost it."""
+
 import numpy as np
 import pytest
 
@@ -18,11 +19,18 @@ EYE, TARGET = np.array([0.0, 1.2, 1.6]), np.array([0.0, 0.15, 0.0])
 
 def probe(floor=None, environment=None, ball=True) -> tuple[dict, Aim]:
     scene = new_scene((32, 32), EYE, TARGET, 45.0)
-    scene["floor"] = {"type": "rectangle", "to_world": planar([0, 0, 0], UP, [0, 0, -1], 1.5, 1.5),
-                      "bsdf": floor or {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb([0.5] * 3)}}}
+    scene["floor"] = {
+        "type": "rectangle",
+        "to_world": planar([0, 0, 0], UP, [0, 0, -1], 1.5, 1.5),
+        "bsdf": floor or {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb([0.5] * 3)}},
+    }
     if ball:
-        scene["ball"] = {"type": "sphere", "center": TARGET.tolist(), "radius": 0.15,
-                         "bsdf": {"type": "diffuse", "reflectance": rgb([0.6, 0.5, 0.4])}}
+        scene["ball"] = {
+            "type": "sphere",
+            "center": TARGET.tolist(),
+            "radius": 0.15,
+            "bsdf": {"type": "diffuse", "reflectance": rgb([0.6, 0.5, 0.4])},
+        }
     if environment is not None:
         scene["environment"] = environment
     return scene, Aim(EYE, TARGET, 0.4, 0.0, 1.0)
@@ -45,7 +53,9 @@ def luminance(buffers: dict) -> np.ndarray:
 
 def detail(image: np.ndarray) -> float:
     """Mean absolute difference between neighbouring pixels over the mean: what a pattern adds."""
-    return float((np.abs(np.diff(image, axis=0)).mean() + np.abs(np.diff(image, axis=1)).mean()) / (image.mean() + 1e-9))
+    return float(
+        (np.abs(np.diff(image, axis=0)).mean() + np.abs(np.diff(image, axis=1)).mean()) / (image.mean() + 1e-9)
+    )
 
 
 def light_key(scene: dict) -> str:
@@ -112,15 +122,23 @@ def test_bump_and_normal_maps_ripple_the_shading_under_a_grazing_light(variant):
 def test_textured_roughness_changes_a_highlight_beyond_noise(variant):
     """The floor reflects a small light towards the camera: patches of sharp and blurred highlight under
     a textured roughness differ from the blob under its mean roughness by far more than the noise."""
-    light = {"type": "sphere", "center": [0.0, 1.0, -1.0], "radius": 0.05,
-             "emitter": {"type": "area", "radiance": rgb([300.0] * 3)}}
+    light = {
+        "type": "sphere",
+        "center": [0.0, 1.0, -1.0],
+        "radius": 0.05,
+        "emitter": {"type": "area", "radiance": rgb([300.0] * 3)},
+    }
     for seed in range(2):
         scene = dict(with_construct("rough_texture", seed, ball=False), light=light)
         metal = scene["floor"]["bsdf"]["bsdf"]
         alpha = metal["alpha"]["bitmap"].pixels
         assert metal["type"] == "roughconductor" and alpha.max() - alpha.min() > 0.1
-        uniform = dict(scene, floor=dict(scene["floor"], bsdf={"type": "twosided", "bsdf": dict(metal, alpha=float(alpha.mean()))}))
-        textured, plain, plain_again = (render(s, spp=64, seed=k)["specular"].sum(-1) for s, k in ((scene, 0), (uniform, 0), (uniform, 1)))
+        uniform = dict(
+            scene, floor=dict(scene["floor"], bsdf={"type": "twosided", "bsdf": dict(metal, alpha=float(alpha.mean()))})
+        )
+        textured, plain, plain_again = (
+            render(s, spp=64, seed=k)["specular"].sum(-1) for s, k in ((scene, 0), (uniform, 0), (uniform, 1))
+        )
         assert textured.mean() > 0.01
         assert np.abs(textured - plain).mean() > 3.0 * np.abs(plain - plain_again).mean(), seed
 
@@ -134,7 +152,10 @@ def fine_checker(checks: int = 16) -> Image:
 def test_thin_lens_blurs_what_is_out_of_focus(variant):
     """Neighbour contrast of a fine checker floor drops under the thin lens by more than it varies
     between two seeds of the pinhole render (0.3 % here; the blur takes 2-11 % off)."""
-    floor = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": fine_checker()}}}
+    floor = {
+        "type": "twosided",
+        "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": fine_checker()}},
+    }
     environment = {"type": "constant", "radiance": rgb([1.0] * 3)}
     blurred_sum = sharp_sum = 0.0
     for seed in range(3):
@@ -156,7 +177,9 @@ def test_mirrors_and_glass_show_the_environment_where_the_floor_is_black(variant
     environment = {"type": "envmap", "bitmap": checker(np.random.default_rng(2)), "scale": 2.0}
     for seed in range(3):
         scene = with_construct("mirrors", seed, floor=black, environment=environment, ball=False)
-        optics = {value["bsdf"]["type"] for key, value in scene.items() if key.startswith("optic_") and key != "optic_panel"}
+        optics = {
+            value["bsdf"]["type"] for key, value in scene.items() if key.startswith("optic_") and key != "optic_panel"
+        }
         assert optics and optics <= {"conductor", "dielectric"}
         with_optics = luminance(render(scene))
         without = luminance(render(probe(floor=black, environment=environment, ball=False)[0]))
@@ -173,7 +196,9 @@ def test_caustic_focuses_the_small_light_through_glass_into_the_balls_shadow(var
         scene = with_construct("caustic", seed, ball=False)
         glass = scene["caustic_glass"]
         assert glass["bsdf"]["type"] == "dielectric" and scene["caustic_light"]["radius"] <= 0.05
-        scene["sensor"] = dict(scene["sensor"], fov=25.0, to_world=look_at(EYE, [glass["center"][0], 0.0, glass["center"][2]]))
+        scene["sensor"] = dict(
+            scene["sensor"], fov=25.0, to_world=look_at(EYE, [glass["center"][0], 0.0, glass["center"][2]])
+        )
         opaque = dict(scene, caustic_glass=dict(glass, bsdf={"type": "diffuse", "reflectance": rgb([0.0] * 3)}))
         bare = {key: value for key, value in scene.items() if key != "caustic_glass"}
         lit, dark, open_floor = (render(s, spp=256) for s in (scene, opaque, bare))
@@ -185,12 +210,19 @@ def test_caustic_focuses_the_small_light_through_glass_into_the_balls_shadow(var
 
 # ------------------------------------------------------------------------------ mixing and seeds
 
+
 def test_constructs_mix_into_families_on_their_own_stream():
     """With construct_chance 0 a corpus is exactly as before; with it, the scenes without constructs
     are still the same scenes, and those with them say so in their id."""
     plain = procedural_corpus(["room", "tabletop", "studio", "preview"], 16, seed=1, resolution=(32, 32))
-    mixed = procedural_corpus(["room", "tabletop", "studio", "preview"], 16, seed=1, resolution=(32, 32),
-                              constructs=tuple(CONSTRUCTS), construct_chance=0.6)
+    mixed = procedural_corpus(
+        ["room", "tabletop", "studio", "preview"],
+        16,
+        seed=1,
+        resolution=(32, 32),
+        constructs=tuple(CONSTRUCTS),
+        construct_chance=0.6,
+    )
     assert all(not spec.constructs for spec in plain)
     assert 4 <= sum(bool(spec.constructs) for spec in mixed) <= 15
     for before, after in zip(plain, mixed):
@@ -202,8 +234,11 @@ def test_constructs_mix_into_families_on_their_own_stream():
 
 def test_every_construct_is_reachable_from_every_family_that_can_hold_it():
     for family in ("room", "tabletop", "studio", "preview"):
-        drawn = {name for seed in range(200)
-                 for name in choose_constructs(family, seed, tuple(CONSTRUCTS), 1.0, FAMILIES[family].has_support)}
+        drawn = {
+            name
+            for seed in range(200)
+            for name in choose_constructs(family, seed, tuple(CONSTRUCTS), 1.0, FAMILIES[family].has_support)
+        }
         expected = {name for name, c in CONSTRUCTS.items() if FAMILIES[family].has_support or not c.needs_support}
         assert drawn == expected, family
 

@@ -1,6 +1,7 @@
 """Blender Cycles as a corpus renderer: procedural .blend scenes (scripts/make_blend_scenes.py) rendered by
 real Cycles at 32x32 into the EXR + sidecar the Mitsuba path writes, tiled by `admc-pipe dataset`; a killed
 Cycles render resumes; without Blender a .blend corpus is one message."""
+
 import json
 import os
 import signal
@@ -24,9 +25,17 @@ PYTHON = str(REPO / ".venv" / "bin" / "python")
 
 
 def settings(workdir: Path, scenes: Path, *extra: str) -> list[str]:
-    values = [f"run.workdir='{workdir}'", "run.scheduler=sync", "corpus.n_scenes=0", f"corpus.blend_dirs=['{scenes}']",
-              "render.resolution=[32, 32]", "render.spp=[2, 4]", "render.reference_spp=16", "render.blender_threads=1",
-              *extra]
+    values = [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        "corpus.n_scenes=0",
+        f"corpus.blend_dirs=['{scenes}']",
+        "render.resolution=[32, 32]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=16",
+        "render.blender_threads=1",
+        *extra,
+    ]
     return [arg for value in values for arg in ("--set", value)]
 
 
@@ -39,8 +48,12 @@ def scenes(tmp_path_factory):
     if blender_command() is None:
         pytest.skip("no Blender (bash scripts/setup.sh --blender installs .venv-blender)")
     folder = tmp_path_factory.mktemp("blends")
-    out = subprocess.run([PYTHON, str(SCRIPT), str(folder), "--scenes", "2", "--resolution", "32", "32"],
-                         capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [PYTHON, str(SCRIPT), str(folder), "--scenes", "2", "--resolution", "32", "32"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     assert sorted(p.name for p in folder.glob("*.blend")) == ["interior-000.blend", "product-001.blend"]
     return folder
@@ -57,8 +70,12 @@ def rendered(scenes, tmp_path_factory):
 
 def test_the_scene_script_is_deterministic(scenes, tmp_path):
     for seed in ("0", "1"):
-        out = subprocess.run([PYTHON, str(SCRIPT), str(tmp_path / seed), "--scenes", "2", "--resolution", "32", "32",
-                              "--seed", seed], capture_output=True, text=True, timeout=300)
+        out = subprocess.run(
+            [PYTHON, str(SCRIPT), str(tmp_path / seed), "--scenes", "2", "--resolution", "32", "32", "--seed", seed],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert out.returncode == 0, out.stderr
     first = json.loads((scenes / "scenes.json").read_text())
     assert json.loads((tmp_path / "0" / "scenes.json").read_text()) == first
@@ -72,8 +89,11 @@ def test_cycles_renders_are_what_the_mitsuba_path_writes(rendered):
         noisy, reference = read_exr(folder / "spp0004.exr"), read_exr(folder / "reference.exr")
         sidecar = json.loads((folder / "spp0004.json").read_text())
         ref_sidecar = json.loads((folder / "reference.json").read_text())
-        assert set(noisy) == set(reference) == {"diffuse", "specular", "albedo", "normal", "depth", "coverage",
-                                                "diffuse_var", "specular_var"}
+        assert (
+            set(noisy)
+            == set(reference)
+            == {"diffuse", "specular", "albedo", "normal", "depth", "coverage", "diffuse_var", "specular_var"}
+        )
         assert noisy["diffuse"].shape == (32, 32, 3)
         assert sidecar["spp"] == 4 and ref_sidecar["reference"] and sidecar["seed"] != ref_sidecar["seed"]
         assert sidecar["variant"].startswith("cycles-cpu (Blender 5.0")
@@ -106,7 +126,7 @@ def test_subrenders_combine_to_the_mean_and_the_variance_of_the_mean():
 
 def test_coverage_is_zero_only_where_the_environment_is_seen_directly():
     sky = np.full((1, 3, 3), 0.7, np.float32)
-    depth = np.array([[[2.0], [0.0], [0.0]]], np.float32)          # a surface, the sky, a mirror showing the sky
+    depth = np.array([[[2.0], [0.0], [0.0]]], np.float32)  # a surface, the sky, a mirror showing the sky
     combined = np.array([[[0.3] * 3, [0.7] * 3, [0.5] * 3]], np.float32)
     environment = np.array([[[0.0] * 3, [0.7] * 3, [0.0] * 3]], np.float32)  # Cycles' pass: the sky seen directly
     assert coverage(depth, combined, environment)[0, :, 0].tolist() == [1.0, 0.0, 1.0]
@@ -114,8 +134,10 @@ def test_coverage_is_zero_only_where_the_environment_is_seen_directly():
 
 
 def test_dataset_tiles_cycles_renders_like_mitsuba_ones(rendered, scenes):
-    out = admc("dataset", *settings(rendered, scenes, "tile.patch_size=32", "tile.crops_per_scene=2",
-                                   "tile.split=[0.5, 0.5, 0.0]"))
+    out = admc(
+        "dataset",
+        *settings(rendered, scenes, "tile.patch_size=32", "tile.crops_per_scene=2", "tile.split=[0.5, 0.5, 0.0]"),
+    )
     assert out.returncode == 0, out.stderr
     assert "(0 rendered now" not in out.stdout  # the renders are cached: only the tiling ran
     from admc.stores import patches
@@ -128,8 +150,12 @@ def test_dataset_tiles_cycles_renders_like_mitsuba_ones(rendered, scenes):
 
 def test_a_killed_cycles_render_resumes(scenes, tmp_path):
     cache = tmp_path / "cache" / "render"
-    proc = subprocess.Popen([ADMC, "render", *settings(tmp_path, scenes, "render.reference_spp=64")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [ADMC, "render", *settings(tmp_path, scenes, "render.reference_spp=64")],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 300
         while not (list(cache.glob("*/_task.json")) and list((tmp_path / "cache" / ".tmp").glob("*/_subrenders/*"))):

@@ -1,5 +1,6 @@
 """Training data: symmetry augmentation (normals transformed with the image), the seeded resumable
 batch stream, and DataLoader batches from a real patch store with and without workers."""
+
 import numpy as np
 import pytest
 import torch
@@ -24,8 +25,8 @@ def sphere_features(height: int, width: int, cy: float, cx: float, radius: float
     """
     r, c = np.mgrid[0:height, 0:width].astype(np.float64)
     x, y = (c - cx) / radius, -(r - cy) / radius
-    inside = x ** 2 + y ** 2 < 1
-    z = np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, 1))
+    inside = x**2 + y**2 < 1
+    z = np.sqrt(np.clip(1 - x**2 - y**2, 0, 1))
     n = np.where(inside, np.stack([x, y, z]), np.array([0.0, 0.0, 1.0])[:, None, None])
     depth = np.where(inside, 1 - z / 2, 1.0)[None]
     albedo = np.stack([r / height, c / width, np.full_like(r, 0.5)])
@@ -66,7 +67,7 @@ def test_normal_rules_as_stated():
     np.testing.assert_allclose(augment(v, 4, normals=True)[0], 1 - v[0, :, ::-1])  # columns: nx -> -nx
     np.testing.assert_allclose(augment(v, 4, normals=True)[1], v[1, :, ::-1])
     np.testing.assert_allclose(augment(v, 2, normals=True)[1], 1 - v[1, ::-1, :])  # rows: ny -> -ny
-    t = augment(v, 1, normals=True)                                                  # transpose
+    t = augment(v, 1, normals=True)  # transpose
     np.testing.assert_allclose(t[0], 1 - v[1].T)
     np.testing.assert_allclose(t[1], 1 - v[0].T)
     np.testing.assert_allclose(t[2:], v[2:].transpose(0, 2, 1))
@@ -107,7 +108,6 @@ def test_batch_stream_is_seeded_covers_each_epoch_and_resumes_mid_stream():
     assert codes <= set(range(N_SYMMETRIES)) and len(codes) > 4
 
 
-
 def test_rank_shards_together_are_the_single_stream_and_resume_alike():
     def take(stream, n):
         it = iter(stream)
@@ -120,6 +120,7 @@ def test_rank_shards_together_are_the_single_stream_and_resume_alike():
         assert take(BatchStream(10, 4, seed=5, start_batch=5, shard=(rank, 2)), 3) == shards[rank][5:]
     with pytest.raises(ValueError, match="no shard"):
         BatchStream(10, 3, seed=5, shard=(0, 2))
+
 
 def test_dataset_items_are_augmented_store_rows(store):
     reader = PatchReader(store, "train")

@@ -1,4 +1,5 @@
 """Render + tile end to end: the patch store holds exactly what the EXRs say, incrementally."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -17,9 +18,17 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 
 def tiny_overrides(n_scenes):
-    return ["run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]", "render.reference_spp=16",
-            "corpus.families=['room', 'tabletop']", f"corpus.n_scenes={n_scenes}", "tile.patch_size=32",
-            "tile.crops_per_scene=3", "tile.split=[0.6, 0.2, 0.2]"]
+    return [
+        "run.scheduler=sync",
+        "render.resolution=[64, 64]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=16",
+        "corpus.families=['room', 'tabletop']",
+        f"corpus.n_scenes={n_scenes}",
+        "tile.patch_size=32",
+        "tile.crops_per_scene=3",
+        "tile.split=[0.6, 0.2, 0.2]",
+    ]
 
 
 def tiny(workdir, n_scenes):
@@ -29,6 +38,7 @@ def tiny(workdir, n_scenes):
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     from admc.pipeline.render.variants import use_variant
+
     use_variant("auto")
     workdir = tmp_path_factory.mktemp("dataset")
     return workdir, build_dataset(tiny(workdir, 3), progress=False)
@@ -57,6 +67,7 @@ def test_store_rows_equal_the_transformed_exr_crops(built):
 
 def _origin(store, group, row):
     import zarr
+
     g = zarr.open_group(str(store / group), mode="r")
     return g["origin"][int(g["crop"][row])]
 
@@ -64,6 +75,7 @@ def _origin(store, group, row):
 def test_store_attributes_invert_the_reference(built):
     workdir, result = built
     import zarr
+
     root = zarr.open_group(str(result.store), mode="r")
     assert root.attrs["transform"] == tf.transform_spec()
     assert root.attrs["feature_channels"] == list(tf.FEATURE_CHANNELS)
@@ -77,7 +89,7 @@ def test_store_attributes_invert_the_reference(built):
         stored = group["ref_diffuse"][int(group["crop"][row])].astype(np.float32).transpose(1, 2, 0)
         albedo = group["features"][row][4:7].astype(np.float32).transpose(1, 2, 0)  # the row's own albedo
         back = tf.diffuse_inverse(stored, albedo)
-        want = reference["diffuse"][y:y + 32, x:x + 32]
+        want = reference["diffuse"][y : y + 32, x : x + 32]
         np.testing.assert_allclose(back, want, rtol=2e-3, atol=2e-3)
 
 
@@ -96,6 +108,7 @@ def test_rerun_does_nothing_and_a_new_scene_tiles_only_itself(built):
 def test_deleted_store_is_rebuilt_from_cached_renders(tmp_path, variant):
     first = build_dataset(tiny(tmp_path, 1), progress=False)
     import shutil
+
     shutil.rmtree(first.store)
     again = build_dataset(tiny(tmp_path, 1), progress=False)
     assert again.executed == 1, "only the tile task reruns; renders stay cached"
@@ -110,10 +123,14 @@ def _fake_render(folder: Path, layers: dict, precision="float") -> Path:
 
 def _layers(rng, size, specular=True, poison=False):
     h = w = size
-    layers = {"diffuse": rng.random((h, w, 3), dtype=np.float32), "albedo": rng.random((h, w, 3), dtype=np.float32),
-              "normal": rng.uniform(-1, 1, (h, w, 3)).astype(np.float32),
-              "depth": rng.uniform(1, 5, (h, w, 1)).astype(np.float32), "coverage": np.ones((h, w, 1), np.float32),
-              "diffuse_var": rng.random((h, w, 3), dtype=np.float32) * 0.01}
+    layers = {
+        "diffuse": rng.random((h, w, 3), dtype=np.float32),
+        "albedo": rng.random((h, w, 3), dtype=np.float32),
+        "normal": rng.uniform(-1, 1, (h, w, 3)).astype(np.float32),
+        "depth": rng.uniform(1, 5, (h, w, 1)).astype(np.float32),
+        "coverage": np.ones((h, w, 1), np.float32),
+        "diffuse_var": rng.random((h, w, 3), dtype=np.float32) * 0.01,
+    }
     if specular:
         layers["specular"] = rng.random((h, w, 3), dtype=np.float32)
         layers["specular_var"] = rng.random((h, w, 3), dtype=np.float32) * 0.01
@@ -138,11 +155,23 @@ def _store(tmp_path):
 @pytest.mark.parametrize("specular", [True, False])
 def test_nan_inf_and_huge_pixels_are_handled_and_reported(tmp_path, specular):
     rng = np.random.default_rng(1)
-    inputs = {"reference": _fake_render(tmp_path / "ref", _layers(rng, 32, specular, poison=True)),
-              "spp0004": _fake_render(tmp_path / "n4", _layers(rng, 32, specular, poison=True))}
+    inputs = {
+        "reference": _fake_render(tmp_path / "ref", _layers(rng, 32, specular, poison=True)),
+        "spp0004": _fake_render(tmp_path / "n4", _layers(rng, 32, specular, poison=True)),
+    }
     store = _store(tmp_path)
-    out = tile.tile_scene(tmp_path, inputs, store=str(store), split="train", scene_id="poisoned",
-                          scene_hash="ab" * 32, patch_size=16, crops_per_scene=4, candidates_per_crop=4, seed=0)
+    out = tile.tile_scene(
+        tmp_path,
+        inputs,
+        store=str(store),
+        split="train",
+        scene_id="poisoned",
+        scene_hash="ab" * 32,
+        patch_size=16,
+        crops_per_scene=4,
+        candidates_per_crop=4,
+        seed=0,
+    )
     # counts are per value: each poisoned pixel has 3 channels
     assert out["sanitized"]["reference/diffuse"]["nan"] == 3
     assert out["sanitized"]["reference/diffuse"]["posinf"] == 3
@@ -152,6 +181,7 @@ def test_nan_inf_and_huge_pixels_are_handled_and_reported(tmp_path, specular):
     if specular:
         assert out["sanitized"]["spp0004/specular"]["neginf"] == 3
     import zarr
+
     group = zarr.open_group(str(store / "train" / "poisoned"), mode="r")
     for name in group.array_keys():
         assert np.isfinite(group[name][...].astype(np.float32)).all(), name
@@ -183,14 +213,27 @@ def test_image_smaller_than_patch_is_a_clear_error():
 
 def test_cli_summary_prints_counts_and_writes_contact_sheet(built):
     workdir, result = built
-    args = ["--set", f"run.workdir='{workdir}'", "--set", "tile.patch_size=32", "--set", "tile.crops_per_scene=3",
-            "--set", "tile.split=[0.6, 0.2, 0.2]", "--set", "render.spp=[2, 4]", "--set", "render.reference_spp=16"]
+    args = [
+        "--set",
+        f"run.workdir='{workdir}'",
+        "--set",
+        "tile.patch_size=32",
+        "--set",
+        "tile.crops_per_scene=3",
+        "--set",
+        "tile.split=[0.6, 0.2, 0.2]",
+        "--set",
+        "render.spp=[2, 4]",
+        "--set",
+        "render.reference_spp=16",
+    ]
     out = subprocess.run([ADMC, "dataset", "--summary", *args], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "train" in out.stdout and "sanitized values" in out.stdout
     sheet = contact_sheet_path(workdir, result.store)
     assert str(sheet) in out.stdout
     from PIL import Image
+
     image = Image.open(sheet)
     assert image.size[0] == 4 * 32 + 3 * 4 and image.size[1] >= 32
 
@@ -200,10 +243,21 @@ def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
     from test_scenes import write_kitchen_scene
 
     scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
-    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
-                             "render.reference_spp=8", "render.resolution=[32, 32]", "corpus.n_scenes=0",
-                             f"corpus.xml_dirs=['{scenes}']", "tile.patch_size=32", "tile.crops_per_scene=2",
-                             "tile.split=[1.0, 0.0, 0.0]"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path / 'work'}'",
+            "run.scheduler=sync",
+            "render.spp=[2]",
+            "render.reference_spp=8",
+            "render.resolution=[32, 32]",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{scenes}']",
+            "tile.patch_size=32",
+            "tile.crops_per_scene=2",
+            "tile.split=[1.0, 0.0, 0.0]",
+        ],
+    )
     result = build_dataset(cfg, progress=False)
     assert [s.scene_id for s in result.scenes] == ["xml-kitchen"]
     assert patches.list_scenes(result.store, "train") == ["xml-kitchen"]
@@ -214,6 +268,7 @@ def test_user_xml_scenes_become_a_domain_set(tmp_path, variant):
 def test_tiled_scenes_match_the_documented_layout(built):
     """One reference entry per row, as patches.LAYOUT says: crop is the identity and n_crops == n_rows."""
     import zarr
+
     workdir, result = built
     root = zarr.open_group(str(result.store), mode="r")
     for summary in result.tiles:
@@ -227,10 +282,22 @@ def test_tiled_scenes_match_the_documented_layout(built):
 def test_scenes_with_constructs_tile_into_the_store(tmp_path, variant):
     """A broadened corpus (configs/broad.toml) names a scene by its constructs, "room-1000000+grate": the
     store takes that name (it refused the "+" once, so no construct scene ever reached training)."""
-    cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[2]", "render.reference_spp=4", "corpus.families=['room']",
-                             "corpus.n_scenes=2", "corpus.construct_chance=1.0", "tile.patch_size=32",
-                             "tile.crops_per_scene=1", "tile.split=[1.0, 0.0, 0.0]"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[2]",
+            "render.reference_spp=4",
+            "corpus.families=['room']",
+            "corpus.n_scenes=2",
+            "corpus.construct_chance=1.0",
+            "tile.patch_size=32",
+            "tile.crops_per_scene=1",
+            "tile.split=[1.0, 0.0, 0.0]",
+        ],
+    )
     result = build_dataset(cfg, progress=False)
     names = [s.scene_id for s in result.scenes]
     assert all("+" in name for name in names), names
@@ -242,12 +309,25 @@ def test_noise_maps_are_tiled_when_the_config_asks_and_kept_across_runs_without_
     through transforms.*_noise, cropped like every row. A run without them into the same store re-tiles
     the scenes without them; the next run that asks re-tiles them back from the cached renders."""
     from admc.pipeline.render.variants import use_variant
+
     use_variant("auto")
     plain = tiny(tmp_path, 2)
-    noisy = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[64, 64]",
-                               "render.spp=[2, 4]", "render.reference_spp=16", "corpus.families=['room', 'tabletop']",
-                               "corpus.n_scenes=2", "tile.patch_size=32", "tile.crops_per_scene=3",
-                               "tile.split=[0.6, 0.2, 0.2]", "model.noise_input=true"])
+    noisy = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path}'",
+            "run.scheduler=sync",
+            "render.resolution=[64, 64]",
+            "render.spp=[2, 4]",
+            "render.reference_spp=16",
+            "corpus.families=['room', 'tabletop']",
+            "corpus.n_scenes=2",
+            "tile.patch_size=32",
+            "tile.crops_per_scene=3",
+            "tile.split=[0.6, 0.2, 0.2]",
+            "model.noise_input=true",
+        ],
+    )
     result = build_dataset(noisy, progress=False)
     for summary in result.tiles:
         assert summary["has_noise"] and patches.has_noise_maps(result.store, summary["split"], summary["scene_id"])
@@ -259,13 +339,19 @@ def test_noise_maps_are_tiled_when_the_config_asks_and_kept_across_runs_without_
                 row, features = plain_rows[i], with_noise[i]["features"]
                 y, x = _origin(result.store, f"{summary['split']}/{summary['scene_id']}", plain_rows.locate(i)[1])
                 layers = exr.read_exr(result.renders_dir / summary["scene_id"] / f"spp{row['spp']:04d}.exr")
-                noise = (tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], layers["albedo"])
-                         if branch == "diffuse" else tf.specular_noise(layers["specular_var"], layers["specular"]))
+                noise = (
+                    tf.diffuse_noise(layers["diffuse_var"], layers["diffuse"], layers["albedo"])
+                    if branch == "diffuse"
+                    else tf.specular_noise(layers["specular_var"], layers["specular"])
+                )
                 np.testing.assert_array_equal(features[:-1], row["features"])
-                np.testing.assert_array_equal(features[-1:], noise[y:y + 32, x:x + 32].transpose(2, 0, 1)
-                                              .astype(np.float16).astype(np.float32))
-    assert len(result.tiles) == 2 and any(len(patches.PatchReader(result.store, s["split"], noise=True))
-                                          for s in result.tiles)
+                np.testing.assert_array_equal(
+                    features[-1:],
+                    noise[y : y + 32, x : x + 32].transpose(2, 0, 1).astype(np.float16).astype(np.float32),
+                )
+    assert len(result.tiles) == 2 and any(
+        len(patches.PatchReader(result.store, s["split"], noise=True)) for s in result.tiles
+    )
 
     again = build_dataset(plain, progress=False)  # renders cached; the tiles without noise maps run
     assert again.executed == 2
@@ -281,14 +367,27 @@ def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
     noisy = _layers(rng, 32, True, poison=True)
     noisy["diffuse_var"][7, 7] = [np.nan, np.inf, -1.0]
     noisy["specular_var"][8, 8] = [np.inf, 1e30, -np.inf]
-    inputs = {"reference": _fake_render(tmp_path / "ref", _layers(rng, 32, True)),
-              "spp0004": _fake_render(tmp_path / "n4", noisy)}
+    inputs = {
+        "reference": _fake_render(tmp_path / "ref", _layers(rng, 32, True)),
+        "spp0004": _fake_render(tmp_path / "n4", noisy),
+    }
     store = _store(tmp_path)
-    out = tile.tile_scene(tmp_path, inputs, store=str(store), split="train", scene_id="poisoned",
-                          scene_hash="ab" * 32, patch_size=16, crops_per_scene=4, candidates_per_crop=4, seed=0,
-                          noise_maps=True)
+    out = tile.tile_scene(
+        tmp_path,
+        inputs,
+        store=str(store),
+        split="train",
+        scene_id="poisoned",
+        scene_hash="ab" * 32,
+        patch_size=16,
+        crops_per_scene=4,
+        candidates_per_crop=4,
+        seed=0,
+        noise_maps=True,
+    )
     assert out["has_noise"]
     import zarr
+
     group = zarr.open_group(str(store / "train" / "poisoned"), mode="r")
     for name in ("noise_diffuse", "noise_specular"):
         values = group[name][...].astype(np.float32)
@@ -301,10 +400,13 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
     are untouched. The store records it, so a store tiled on raw references refuses the clean config."""
     from admc.model.inference.oidn_base import oidn_bases
     from admc.pipeline.render.variants import use_variant
+
     use_variant("auto")
     raw = build_dataset(tiny(tmp_path / "raw", 2), progress=False)
-    clean_cfg = load_config(None, [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true",
-                                   "tile.store=clean.zarr", *tiny_overrides(2)])
+    clean_cfg = load_config(
+        None,
+        [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true", "tile.store=clean.zarr", *tiny_overrides(2)],
+    )
     clean = build_dataset(clean_cfg, progress=False)
     assert clean.executed == 2 and all(s["split"] for s in clean.tiles)  # renders cached: only the tiles ran
     for summary in clean.tiles:
@@ -321,8 +423,11 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
                 np.testing.assert_array_equal(row["features"], raw_row["features"])
                 y, x = _origin(clean.store, f"{split}/{scene_id}", clean_rows.locate(i)[1])
                 layers = exr.read_exr(clean.renders_dir / scene_id / f"spp{row['spp']:04d}.exr")
-                want = (tf.diffuse_forward(bases["diffuse"], layers["albedo"]) if branch == "diffuse"
-                        else tf.specular_forward(bases["specular"]))[y:y + 32, x:x + 32].transpose(2, 0, 1)
+                want = (
+                    tf.diffuse_forward(bases["diffuse"], layers["albedo"])
+                    if branch == "diffuse"
+                    else tf.specular_forward(bases["specular"])
+                )[y : y + 32, x : x + 32].transpose(2, 0, 1)
                 np.testing.assert_array_equal(row["reference"], want.astype(np.float16).astype(np.float32))
                 assert not np.array_equal(row["reference"], raw_row["reference"])
     mixed = load_config(None, [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true", *tiny_overrides(2)])

@@ -32,14 +32,19 @@ def _sky(mi):
 def _sphere_scene(mi, bsdf: dict, sky: dict | None = None):
     """A unit sphere at the origin seen from z = 4 filling the image's middle, the environment around it."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": SIZE, "height": SIZE, "rfilter": {"type": "box"}}},
-        "sky": sky or {"type": "envmap", "bitmap": _sky(mi)},
-        "ball": {"type": "sphere", "radius": 1.0, "bsdf": bsdf},
-    })
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "perspective",
+                "fov": 40,
+                "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": SIZE, "height": SIZE, "rfilter": {"type": "box"}},
+            },
+            "sky": sky or {"type": "envmap", "bitmap": _sky(mi)},
+            "ball": {"type": "sphere", "radius": 1.0, "bsdf": bsdf},
+        }
+    )
 
 
 MIRROR_BSDF = {"type": "conductor", "material": "none", "specular_reflectance": {"type": "rgb", "value": MIRROR}}
@@ -90,8 +95,9 @@ def test_a_uniform_sky_in_a_mirror_has_nothing_to_denoise_and_stays_environment(
     sky = {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 0.7, 0.3]}}
     layers = render_buffers(_sphere_scene(mi, MIRROR_BSDF, sky), 4, seed=0)
     assert np.all(layers["coverage"][CENTRE] == 0)
-    np.testing.assert_allclose(layers["diffuse"][CENTRE], np.broadcast_to(MIRROR * np.array([1.0, 0.7, 0.3]), (2, 2, 3)),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        layers["diffuse"][CENTRE], np.broadcast_to(MIRROR * np.array([1.0, 0.7, 0.3]), (2, 2, 3)), rtol=1e-6
+    )
 
 
 def test_admc_denoises_the_mirror_instead_of_passing_it_through(mirror, inference_dtype):

@@ -1,6 +1,7 @@
 """Data-parallel training with 2 real gloo processes on the CPU (tiny networks, a tiny real store):
 2 ranks take the single-process steps at the same global batch, and a killed rank ends the run with one
 clear message and a checkpoint that resumes."""
+
 import os
 import signal
 import subprocess
@@ -28,16 +29,34 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 CPU = torch.device("cpu")
 TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4)
 # One step of each phase (L1, critic alone, adversarial), validated before and after, global batch 4.
-SETTINGS = TrainSettings(steps=3, batch_size=4, l1_warmup_steps=1, critic_only_steps=1, critic_steps_per_g=1,
-                         lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=0,
-                         lr_milestones=(5,), val_every=3, val_patches=4, checkpoint_every=3, log_every=1,
-                         num_workers=0, threads=1, device="cpu", precision="float32", seed=1, max_bad_steps=3)
+SETTINGS = TrainSettings(
+    steps=3,
+    batch_size=4,
+    l1_warmup_steps=1,
+    critic_only_steps=1,
+    critic_steps_per_g=1,
+    lr_g_diffuse=1e-4,
+    lr_g_specular=1e-4,
+    lr_d=1e-4,
+    head_tail_start_step=0,
+    lr_milestones=(5,),
+    val_every=3,
+    val_patches=4,
+    checkpoint_every=3,
+    log_every=1,
+    num_workers=0,
+    threads=1,
+    device="cpu",
+    precision="float32",
+    seed=1,
+    max_bad_steps=3,
+)
 # The two runs compute the same sums in another order: each rank sums its half of the batch, then the
 # halves are averaged. A weight gradient here sums n = 2 x 32 x 32 = 2048 per-pixel products per rank,
 # whose float32 rounding is at most n * 2^-24 = 1.2e-4 of the magnitudes summed (Higham's bound);
 # measured: < 1e-5 of each tensor's largest entry. A rank that used its own half's gradient instead of
 # the mean would differ by O(1).
-GRAD_RTOL = 2048 * 2.0 ** -24
+GRAD_RTOL = 2048 * 2.0**-24
 
 
 @pytest.fixture(scope="module")
@@ -82,9 +101,13 @@ def test_two_ranks_take_the_single_process_steps(tiny, tmp_path):
     assert ranks.rank == 0 and ranks.weights.is_file()
 
 
-@pytest.mark.parametrize("setting, message", [
-    ("train.batch_size=3", r"'train.batch_size'.*3 does not split across 2 training processes"),
-    ("model.critic_norm=batch", r"'model.critic_norm'.*each of the 2 training processes' slices")])
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("train.batch_size=3", r"'train.batch_size'.*3 does not split across 2 training processes"),
+        ("model.critic_norm=batch", r"'model.critic_norm'.*each of the 2 training processes' slices"),
+    ],
+)
 def test_what_does_not_split_is_refused_before_anything_runs(tiny, setting, message):
     cfg = load_config(None, [*cli_settings(tiny[0], steps=2), setting])
     with pytest.raises(TrainingError, match=message):
@@ -98,11 +121,25 @@ def test_a_rank_that_loses_its_peer_says_so():
 
 
 def cli_settings(workdir, steps):
-    return [*tiny_store_overrides(workdir, 64, 32), "model.channels=8", "model.blocks=1", "model.cond_channels=8",
-            "model.encoder_channels=8", "model.critic_channels=4", f"train.steps={steps}", "train.batch_size=2",
-            "train.l1_warmup_steps=1", "train.critic_only_steps=1", "train.head_tail_start_step=0",
-            "train.val_every=0", "train.checkpoint_every=2", "train.log_every=1", "train.threads=1",
-            "train.device=cpu", "train.precision=float32"]
+    return [
+        *tiny_store_overrides(workdir, 64, 32),
+        "model.channels=8",
+        "model.blocks=1",
+        "model.cond_channels=8",
+        "model.encoder_channels=8",
+        "model.critic_channels=4",
+        f"train.steps={steps}",
+        "train.batch_size=2",
+        "train.l1_warmup_steps=1",
+        "train.critic_only_steps=1",
+        "train.head_tail_start_step=0",
+        "train.val_every=0",
+        "train.checkpoint_every=2",
+        "train.log_every=1",
+        "train.threads=1",
+        "train.device=cpu",
+        "train.precision=float32",
+    ]
 
 
 def rank_processes(parent: psutil.Process) -> list[psutil.Process]:

@@ -1,5 +1,6 @@
 """scripts/make_domain_scenes.py: the cbox fine-tuning domain is deterministic and renders through admc's
 own XML corpus path (discovery, film swap, split integrator) like any user's scenes."""
+
 import subprocess
 import sys
 from pathlib import Path
@@ -17,8 +18,12 @@ NAMES = ["cbox-0-000.xml", "cbox-0-001.xml", "cbox-0-002.xml"]
 
 def make_scenes(out: Path, seed: int) -> dict[str, bytes]:
     """Run the script for 3 scenes; the files it wrote, by name."""
-    done = subprocess.run([sys.executable, str(SCRIPT), str(out), "--scenes", "3", "--seed", str(seed)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), str(out), "--scenes", "3", "--seed", str(seed)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     return {path.name: path.read_bytes() for path in sorted(out.iterdir())}
 
@@ -34,9 +39,18 @@ def test_the_same_seed_writes_the_same_files_and_another_seed_other_ones(tmp_pat
 
 def test_cbox_scenes_load_and_render_with_the_split_integrator(tmp_path, variant):
     make_scenes(tmp_path / "cbox", seed=0)
-    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[4]", "render.reference_spp=8", "corpus.n_scenes=0",
-                             f"corpus.xml_dirs=['{tmp_path / 'cbox'}']"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path / 'work'}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[4]",
+            "render.reference_spp=8",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{tmp_path / 'cbox'}']",
+        ],
+    )
     result = render_corpus(cfg, progress=False)
     assert result.executed == 6 and len(result.sidecars) == 6
     specular = {}
@@ -47,8 +61,9 @@ def test_cbox_scenes_load_and_render_with_the_split_integrator(tmp_path, variant
         assert image.shape == (32, 32, 3) and all(np.isfinite(a).all() for a in layers.values())
         assert sidecar["nonfinite"] == {} and image.mean() > 0.01, (sidecar["scene_id"], image.mean())
         specular[sidecar["scene_id"]] = sidecar["has_specular"]
-    assert specular == {"xml-cbox-0-000": True, "xml-cbox-0-001": True, "xml-cbox-0-002": False}, \
+    assert specular == {"xml-cbox-0-000": True, "xml-cbox-0-001": True, "xml-cbox-0-002": False}, (
         "every third scene is diffuse-only, the others have a specular object"
+    )
 
 
 @pytest.mark.parametrize("domain", ["interior", "product", "exterior"])
@@ -57,8 +72,12 @@ def test_a_domain_is_one_set_whose_frames_render_through_the_xml_corpus(tmp_path
     same bytes for the same seed; every frame loads and renders with the split integrator, non-black and
     finite, and the set's frames differ (cameras, lights) while sharing its files."""
     out = tmp_path / domain
-    done = subprocess.run([sys.executable, str(SCRIPT), str(out), "--domain", domain, "--frames", "3"],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), str(out), "--domain", domain, "--frames", "3"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     files = {path.name: path.read_bytes() for path in sorted(out.iterdir())}
     frames = [name for name in files if name.endswith(".xml")]
@@ -67,17 +86,31 @@ def test_a_domain_is_one_set_whose_frames_render_through_the_xml_corpus(tmp_path
     assert shared and all(name.endswith((".exr", ".obj")) for name in shared)
     assert all(any(name in files[f].decode() for f in frames) for name in shared), "every asset is used"
     again = tmp_path / "again"
-    subprocess.run([sys.executable, str(SCRIPT), str(again), "--domain", domain, "--frames", "3"], check=True,
-                   capture_output=True, timeout=120)
+    subprocess.run(
+        [sys.executable, str(SCRIPT), str(again), "--domain", domain, "--frames", "3"],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
     assert {path.name: path.read_bytes() for path in sorted(again.iterdir())} == files
-    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[4]", "render.reference_spp=8", "corpus.n_scenes=0",
-                             f"corpus.xml_dirs=['{out}']"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path / 'work'}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[4]",
+            "render.reference_spp=8",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{out}']",
+        ],
+    )
     result = render_corpus(cfg, progress=False)
     assert result.executed == 6
     for sidecar in result.sidecars:
-        layers = read_exr(result.renders_dir / sidecar["scene_id"] / ("reference.exr" if sidecar["reference"]
-                                                                       else "spp0004.exr"))
+        layers = read_exr(
+            result.renders_dir / sidecar["scene_id"] / ("reference.exr" if sidecar["reference"] else "spp0004.exr")
+        )
         image = layers["diffuse"] + layers.get("specular", 0.0)
         assert all(np.isfinite(a).all() for a in layers.values()) and image.mean() > 0.005, sidecar["scene_id"]
         assert sidecar["has_specular"], "every domain has glossy, metal or glass surfaces"

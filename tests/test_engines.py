@@ -1,5 +1,6 @@
 """The CPU engines behind FullImageDenoiser: ONNX Runtime and OpenVINO give torch's result, tiled, with the
 ensemble and the dark pass around them; what an engine cannot do is refused."""
+
 import numpy as np
 import pytest
 import torch
@@ -58,15 +59,20 @@ def test_openvino_in_the_precision_it_picks_gives_the_torch_result():
         assert denoiser.dtype == torch.float32 and error.max() <= FLOAT32_LOG_TOLERANCE
         return
     assert denoiser.dtype == torch.bfloat16
-    torch_bf16 = np.abs(log_branches(load_denoiser(SHIPPED, DenoiserOptions(tile=20, dtype=torch.bfloat16))(layers), layers) - exact)
+    torch_bf16 = np.abs(
+        log_branches(load_denoiser(SHIPPED, DenoiserOptions(tile=20, dtype=torch.bfloat16))(layers), layers) - exact
+    )
     assert error.mean() <= BF16_ERROR_RATIO * torch_bf16.mean(), (error.mean(), torch_bf16.mean())
 
 
-@pytest.mark.parametrize("engine,options,message", [
-    ("tensorrt", {}, "engine 'tensorrt': not one of auto, torch, onnxruntime, openvino"),
-    ("onnxruntime", {"dtype": torch.bfloat16}, "engine 'onnxruntime' runs float32 only"),
-    ("openvino", {"compile": True}, "compile is torch.compile"),
-])
+@pytest.mark.parametrize(
+    "engine,options,message",
+    [
+        ("tensorrt", {}, "engine 'tensorrt': not one of auto, torch, onnxruntime, openvino"),
+        ("onnxruntime", {"dtype": torch.bfloat16}, "engine 'onnxruntime' runs float32 only"),
+        ("openvino", {"compile": True}, "compile is torch.compile"),
+    ],
+)
 def test_what_an_engine_cannot_do_is_refused(engine, options, message):
     with pytest.raises(ValueError, match=message):
         load_denoiser(SHIPPED, DenoiserOptions(engine=engine, **options))
@@ -160,8 +166,10 @@ def test_openvino_calls_stopped_early_wait_for_their_requests():
     generator = openvino_with_threads(2).generators["diffuse"]
     rng = torch.Generator().manual_seed(7)
     sizes = [(8, 12), (192, 256), (8, 12)]
-    calls = [(generator, (torch.rand((1, 3, *size), generator=rng) * 4, torch.rand((1, 7, *size), generator=rng)))
-             for size in sizes]
+    calls = [
+        (generator, (torch.rand((1, 3, *size), generator=rng) * 4, torch.rand((1, 7, *size), generator=rng)))
+        for size in sizes
+    ]
     with torch.inference_mode():
         references = [exact(*inputs) for _, inputs in calls]
     outputs = run_together(calls)

@@ -1,6 +1,7 @@
 """Equal time between denoisers: each one's relMSE against another's at the same total time, interpolated on
 the other's error-against-time curve, on the figures of a real `make demo` (issue 35), and in equal_time.md
 and results.json."""
+
 import json
 import math
 from pathlib import Path
@@ -42,9 +43,24 @@ def test_error_at_a_curve_point_is_that_point_and_outside_is_none():
 
 def _records(method, curve, render):
     """Two scenes per spp whose means are `curve`'s points (±10% around them), rendered in `render` seconds."""
-    return [ImageRecord(scene, spp, method, "cpu", 0.1, 30.0, relmse * factor, 0.2, 0, render[spp],
-                        seconds - render[spp], Path(f"/out/images/{scene}_{spp}_{method}.exr"))
-            for spp, (seconds, relmse) in curve.items() for scene, factor in (("a", 0.9), ("b", 1.1))]
+    return [
+        ImageRecord(
+            scene,
+            spp,
+            method,
+            "cpu",
+            0.1,
+            30.0,
+            relmse * factor,
+            0.2,
+            0,
+            render[spp],
+            seconds - render[spp],
+            Path(f"/out/images/{scene}_{spp}_{method}.exr"),
+        )
+        for spp, (seconds, relmse) in curve.items()
+        for scene, factor in (("a", 0.9), ("b", 1.1))
+    ]
 
 
 def test_the_table_is_written_next_to_the_comparison_with_the_raw_path_tracer(tmp_path):
@@ -53,8 +69,14 @@ def test_the_table_is_written_next_to_the_comparison_with_the_raw_path_tracer(tm
     oidn = {4: (0.29, 0.0079), **OIDN}
     records = _records("oidn", oidn, render) + _records("admc", ADMC, render)
     devices = {"oidn": "cpu", "admc": "cpu"}
-    result = EvalResult(table=aggregate(records, devices), records=records,
-                        path_tracer=_records(PATH_TRACER, raw, render), scenes=[], devices=devices, files={})
+    result = EvalResult(
+        table=aggregate(records, devices),
+        records=records,
+        path_tracer=_records(PATH_TRACER, raw, render),
+        scenes=[],
+        devices=devices,
+        files={},
+    )
     for r in result.records + result.path_tracer:
         object.__setattr__(r, "image", tmp_path / "images" / r.image.name)
     write_outputs(result, tmp_path, repeats=1, warmup=0)

@@ -1,4 +1,5 @@
 """`admc-pipe eval` end to end on a tiny corpus: renders the test split, writes every output a person reads."""
+
 import json
 from html import escape as html_escape
 import subprocess
@@ -18,9 +19,17 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 
 def overrides(workdir, split="[0.0, 0.0, 1.0]"):
-    return [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2, 4]",
-            "render.reference_spp=32", "corpus.n_scenes=2", f"tile.split={split}", "eval.repeats=1",
-            "eval.test_scenes_per_family=0"]
+    return [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        "render.resolution=[32, 32]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=32",
+        "corpus.n_scenes=2",
+        f"tile.split={split}",
+        "eval.repeats=1",
+        "eval.test_scenes_per_family=0",
+    ]
 
 
 def test_eval_writes_tables_plot_and_html(tmp_path, variant):
@@ -50,6 +59,7 @@ def test_eval_scores_against_references_at_eval_reference_spp_and_tiling_keeps_i
     references of render.reference_spp, which stay cached for tiling); the sidecars and Table 1's reference
     cost say which spp was scored against."""
     from admc.pipeline.stages.render import render_corpus
+
     cfg = load_config(None, overrides(tmp_path) + ["eval.reference_spp=64", "eval.optix='off'"])
     training = render_corpus(cfg, progress=False)
     outcome = run_eval(cfg, progress=False)
@@ -68,14 +78,20 @@ def test_eval_page_shows_the_written_images_and_no_npy_is_left(tmp_path, variant
     outcome = run_eval(load_config(None, overrides(tmp_path) + ["eval.optix='off'"]), progress=False)
     out, page = outcome.report.parent, outcome.report.read_text()
     assert not list(out.rglob("*.npy"))
-    metrics = {(r.scene_id, r.spp, r.method): {m.label: getattr(r, m.key) for m in METRICS}
-               for r in outcome.result.records}
+    metrics = {
+        (r.scene_id, r.spp, r.method): {m.label: getattr(r, m.key) for m in METRICS} for r in outcome.result.records
+    }
     shown = outcome.result.scenes[:REPORT_SCENES]
     assert len(shown) == 2 and page.count('<section class="group"') == 2 * 2
     for index, (scene, spp) in enumerate((s, spp) for s in shown for spp in sorted(s.outputs)):
         outputs = {name: read_image(path) for name, path in scene.outputs[spp].items()}
-        item = ReportImage(scene.scene_id, spp, read_image(scene.reference), outputs,
-                           {name: metrics[(scene.scene_id, spp, name)] for name in outputs})
+        item = ReportImage(
+            scene.scene_id,
+            spp,
+            read_image(scene.reference),
+            outputs,
+            {name: metrics[(scene.scene_id, spp, name)] for name in outputs},
+        )
         assert f'<section class="group" id="group-{index}">{report_group(item).body}</section>' in page
 
 
@@ -113,10 +129,21 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
     from test_scenes import write_kitchen_scene
 
     scenes = write_kitchen_scene(tmp_path / "my_scenes").parent
-    cfg = load_config(None, [f"run.workdir='{tmp_path / 'work'}'", "run.scheduler=sync", "render.spp=[2]",
-                             "render.reference_spp=16", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
-                             "corpus.xml_resolution='film'", "tile.split=[0.0, 0.0, 1.0]", "eval.repeats=1",
-                             "eval.test_scenes_per_family=0"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path / 'work'}'",
+            "run.scheduler=sync",
+            "render.spp=[2]",
+            "render.reference_spp=16",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{scenes}']",
+            "corpus.xml_resolution='film'",
+            "tile.split=[0.0, 0.0, 1.0]",
+            "eval.repeats=1",
+            "eval.test_scenes_per_family=0",
+        ],
+    )
     outcome = run_eval(cfg, progress=False)
     assert outcome.scene_ids == ["xml-kitchen"]
     (scene,) = outcome.result.scenes
@@ -126,6 +153,7 @@ def test_eval_on_a_users_own_xml_scenes_at_their_film_size(tmp_path, variant):
 
 def test_weights_columns_are_named_by_the_eval_stage(tmp_path):
     from admc.pipeline.stages.evaluate import named_weights
+
     # one unnamed file: named after the base it records when loaded ("admc" or "admc+oidn")
     assert named_weights(["runs/a/weights-fp16.pt"]) == [(None, Path("runs/a/weights-fp16.pt"))]
     assert [n for n, _ in named_weights(["runs/a/weights-fp16.pt", "base=x.pt"])] == ["admc-a", "base"]
@@ -138,9 +166,15 @@ def test_the_ensemble_and_dark_pass_row_has_its_own_name_and_settings(tmp_path, 
     from admc.pipeline.evaluation.scoring import _check_denoisers
     from admc.pipeline.stages.evaluate import learned_denoisers
     from admc.pipeline.weights import WEIGHTS_DIR
-    cfg = load_config(None, overrides(tmp_path) + [f"eval.ensemble={ensemble}", f"eval.dark_pass={dark_pass}",
-                                                   "eval.also_ensemble_dark=true"])
+
+    cfg = load_config(
+        None,
+        overrides(tmp_path)
+        + [f"eval.ensemble={ensemble}", f"eval.dark_pass={dark_pass}", "eval.also_ensemble_dark=true"],
+    )
     models = learned_denoisers(cfg, [str(WEIGHTS_DIR / "admc-small-pretrained.pt")], device="cpu")
     assert [(m.name, m.ensemble, m.dark_pass) for m in models] == [
-        ("admc", ensemble, dark_pass == "true"), ("admc-ens4+dark", 4, True)][:rows]  # no row twice
+        ("admc", ensemble, dark_pass == "true"),
+        ("admc-ens4+dark", 4, True),
+    ][:rows]  # no row twice
     _check_denoisers(models)  # names evaluate() accepts (they name image files)

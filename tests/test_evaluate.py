@@ -1,4 +1,5 @@
 """Evaluation on a real tiny render set (2 scenes x 2 spp, 32x32) with the noisy input and OIDN on CPU."""
+
 import csv
 import gc
 import json
@@ -16,8 +17,16 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from admc.common.buffers import BEAUTY
 from admc.common.metrics import METRICS, count_nonfinite, score, to_ldr
 from admc.pipeline.config import load_config
-from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser, mitsuba_sensor_normals,
-                                                noisy_color, optix_unavailable_reason, time_denoiser)
+from admc.pipeline.evaluation.baselines import (
+    Denoiser,
+    NoisyInput,
+    OidnDenoiser,
+    OptixDenoiser,
+    mitsuba_sensor_normals,
+    noisy_color,
+    optix_unavailable_reason,
+    time_denoiser,
+)
 from admc.pipeline.evaluation.scoring import evaluate
 from admc.pipeline.evaluation.inputs import find_test_images, read_reference
 from admc.pipeline.evaluation.records import PATH_TRACER, EvalError, best_percent
@@ -32,8 +41,17 @@ METRIC_KEYS = [m.key for m in METRICS]
 @pytest.fixture(scope="module")
 def renders(variant, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("eval_renders")
-    cfg = load_config(None, [f"run.workdir='{tmp}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[2, 4]", "render.reference_spp=64", "corpus.n_scenes=2"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[2, 4]",
+            "render.reference_spp=64",
+            "corpus.n_scenes=2",
+        ],
+    )
     return render_corpus(cfg, progress=False).renders_dir
 
 
@@ -47,8 +65,9 @@ def handed():
 def evaluated(renders, handed, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval_out")
     images = find_test_images(renders)
-    return evaluate(images, [NoisyInput(), OidnDenoiser()], out, progress=False, repeats=1, warmup=0,
-                    on_image=handed.append), out
+    return evaluate(
+        images, [NoisyInput(), OidnDenoiser()], out, progress=False, repeats=1, warmup=0, on_image=handed.append
+    ), out
 
 
 def _read_table(path):
@@ -58,8 +77,9 @@ def _read_table(path):
 
 def test_find_test_images_reads_folders_and_sidecars(renders):
     images = find_test_images(renders)
-    assert [(t.scene_id, t.spp) for t in images] == [(s, spp) for s in sorted(p.name for p in renders.iterdir())
-                                                     for spp in (2, 4)]
+    assert [(t.scene_id, t.spp) for t in images] == [
+        (s, spp) for s in sorted(p.name for p in renders.iterdir()) for spp in (2, 4)
+    ]
     for t in images:
         side = json.loads(t.noisy_path.with_suffix(".json").read_text())
         assert t.render_seconds == side["render_seconds"] > 0
@@ -90,8 +110,10 @@ def test_writes_every_output(evaluated):
     result, out = evaluated
     for name in ("per_image.csv", "results.json", "table1.md", "table1.csv", "error_vs_time.png", "equal_time.md"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
-    assert set(result.files.values()) == {out / n for n in ("per_image.csv", "results.json", "table1.md",
-                                                             "table1.csv", "error_vs_time.png", "equal_time.md")}
+    assert set(result.files.values()) == {
+        out / n
+        for n in ("per_image.csv", "results.json", "table1.md", "table1.csv", "error_vs_time.png", "equal_time.md")
+    }
     assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     doc = json.loads((out / "results.json").read_text())
     assert set(doc["metrics"]) == set(METRIC_KEYS)
@@ -114,9 +136,19 @@ def test_writes_every_output(evaluated):
         assert set(scene.inputs) == {2, 4} and set(scene.outputs[2]) == {"noisy", "oidn"}
     assert not list(out.rglob("*.npy"))
     written = {p.relative_to(out).as_posix() for p in (out / "images").rglob("*") if p.is_file()}
-    assert written == {f"images/{s.scene_id}/{name}.exr" for s in result.scenes
-                       for name in ("reference", "spp0002_input", "spp0004_input", "spp0002_noisy", "spp0002_oidn",
-                                    "spp0004_noisy", "spp0004_oidn")}
+    assert written == {
+        f"images/{s.scene_id}/{name}.exr"
+        for s in result.scenes
+        for name in (
+            "reference",
+            "spp0002_input",
+            "spp0004_input",
+            "spp0002_noisy",
+            "spp0002_oidn",
+            "spp0004_noisy",
+            "spp0004_oidn",
+        )
+    }
 
 
 def test_exrs_hold_the_scored_images_and_on_image_had_them_in_memory(renders, evaluated, handed):
@@ -144,6 +176,7 @@ def test_exrs_hold_the_scored_images_and_on_image_had_them_in_memory(renders, ev
 class _Watcher:
     """A real (if useless) denoiser, the noisy colour, that counts at every run how many images handed to
     on_image for an earlier scene are still alive: evaluation must hold only the scene it works on."""
+
     name = "watcher"
     device = "cpu"
 
@@ -160,7 +193,7 @@ class _Watcher:
 
 
 def test_evaluation_and_the_report_figures_hold_one_scene_at_a_time(renders, tmp_path):
-    images = [t for t in find_test_images(renders) if t.spp == 2]   # one test image per scene
+    images = [t for t in find_test_images(renders) if t.spp == 2]  # one test image per scene
     watcher, figures = _Watcher(), ReportFigures(limit=1)
 
     def on_image(scored):
@@ -169,8 +202,15 @@ def test_evaluation_and_the_report_figures_hold_one_scene_at_a_time(renders, tmp
 
     # the watcher runs after OIDN: pyoidn keeps its last call's buffers bound to its cached filter until
     # its next call (one image, its own business), so by then the earlier scene's OIDN output is released
-    evaluate(images, [NoisyInput(), OidnDenoiser(), watcher], tmp_path, progress=False, repeats=1, warmup=0,
-             on_image=on_image)
+    evaluate(
+        images,
+        [NoisyInput(), OidnDenoiser(), watcher],
+        tmp_path,
+        progress=False,
+        repeats=1,
+        warmup=0,
+        on_image=on_image,
+    )
     assert len(images) == 2 and len(watcher.handed) == 2 * 5
     assert watcher.alive == [0, 0], "the first scene's images outlived it"
     assert figures.scene_ids == [images[0].scene_id] and len(figures.groups) == 1
@@ -183,7 +223,9 @@ def test_reference_render_time_ends_the_raw_curve(renders, evaluated):
     expected = float(np.mean([side["render_seconds"] for side in sidecars]))
     assert result.reference_cost == {"spp": [64], "seconds": pytest.approx(expected)}
     assert json.loads((out / "results.json").read_text())["reference_cost"]["seconds"] == pytest.approx(expected)
-    assert f"The references (64 spp, relMSE 0 by definition) took {expected:.4g} s" in (out / "equal_time.md").read_text()
+    assert (
+        f"The references (64 spp, relMSE 0 by definition) took {expected:.4g} s" in (out / "equal_time.md").read_text()
+    )
 
 
 def test_best_percent_columns_sum_to_100(evaluated):
@@ -199,14 +241,15 @@ def test_best_percent_columns_sum_to_100(evaluated):
 
 def test_best_percent_splits_ties():
     per_image = [
-        {"a": 1.0, "b": 1.0, "c": 2.0},                # a, b tie for lowest
-        {"a": 0.5, "b": 0.7, "c": 0.5 * (1 + 1e-8)},   # a, c equal within rtol 1e-6
-        {"a": 3.0, "b": 3.0, "c": 3.0},                # three-way tie
-        {"a": 0.9, "b": 0.1, "c": 0.2},                # b alone
+        {"a": 1.0, "b": 1.0, "c": 2.0},  # a, b tie for lowest
+        {"a": 0.5, "b": 0.7, "c": 0.5 * (1 + 1e-8)},  # a, c equal within rtol 1e-6
+        {"a": 3.0, "b": 3.0, "c": 3.0},  # three-way tie
+        {"a": 0.9, "b": 0.1, "c": 0.2},  # b alone
     ]
     lower = best_percent(per_image, lower_is_better=True)
-    assert lower == pytest.approx({"a": 25 * (1 / 2 + 1 / 2 + 1 / 3),
-                                   "b": 25 * (1 / 2 + 1 / 3 + 1), "c": 25 * (1 / 2 + 1 / 3)})
+    assert lower == pytest.approx(
+        {"a": 25 * (1 / 2 + 1 / 2 + 1 / 3), "b": 25 * (1 / 2 + 1 / 3 + 1), "c": 25 * (1 / 2 + 1 / 3)}
+    )
     assert sum(lower.values()) == pytest.approx(100.0, abs=1e-12)
     higher = best_percent(per_image, lower_is_better=False)
     assert higher == pytest.approx({"a": 25 * (1 / 3 + 1), "b": 25 * (1 / 3 + 1), "c": 25 * (1 + 1 / 3)})
@@ -217,13 +260,17 @@ def _independent_scores(image, ref):
     package with its own exposure range (these references are lit in most pixels)."""
     a, b = to_ldr(image), to_ldr(ref)
     image, ref = image.astype(np.float64), ref.astype(np.float64)
-    return {"one_minus_ssim": 1 - structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
-                                                        use_sample_covariance=False, channel_axis=-1,
-                                                        data_range=255),
-            "psnr": min(peak_signal_noise_ratio(b, a, data_range=255), 100.0),
-            "relmse": float(np.mean((image - ref) ** 2 / (ref ** 2 + 0.01))),
-            "hdr_flip": flip_evaluator.evaluate(np.maximum(ref, 0).astype(np.float32),
-                                                np.maximum(image, 0).astype(np.float32), "HDR")[1]}
+    return {
+        "one_minus_ssim": 1
+        - structural_similarity(
+            a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, channel_axis=-1, data_range=255
+        ),
+        "psnr": min(peak_signal_noise_ratio(b, a, data_range=255), 100.0),
+        "relmse": float(np.mean((image - ref) ** 2 / (ref**2 + 0.01))),
+        "hdr_flip": flip_evaluator.evaluate(
+            np.maximum(ref, 0).astype(np.float32), np.maximum(image, 0).astype(np.float32), "HDR"
+        )[1],
+    }
 
 
 def test_table_matches_independent_recomputation(renders, evaluated):
@@ -235,8 +282,9 @@ def test_table_matches_independent_recomputation(renders, evaluated):
         layers = read_exr(t.noisy_path)
         noisy = layers["diffuse"] + layers.get("specular", 0)
         oidn = pyoidn.denoise(noisy, layers["albedo"], layers["normal"], hdr=True, quality="high")
-        saved = read_image(next(r.image for r in result.records
-                                if (r.scene_id, r.spp, r.method) == (t.scene_id, t.spp, "oidn")))
+        saved = read_image(
+            next(r.image for r in result.records if (r.scene_id, r.spp, r.method) == (t.scene_id, t.spp, "oidn"))
+        )
         np.testing.assert_allclose(saved, oidn, rtol=1e-6, atol=1e-7)
         scores[(t.spp, "noisy")].append(_independent_scores(noisy, ref))
         scores[(t.spp, "oidn")].append(_independent_scores(oidn, ref))
@@ -266,9 +314,15 @@ def test_normals_reach_optix_in_mitsubas_sensor_frame(variant):
     stored view-space normals, converted back, against Mitsuba's own world-to-sensor transform."""
     import mitsuba as mi
 
-    scene = mi.load_dict({"type": "scene", "sensor": {
-        "type": "perspective", "to_world": mi.ScalarTransform4f().look_at(origin=[3, 1.5, -2], target=[0, 0.3, 0.4],
-                                                                          up=[0.2, 1, 0.1])}})
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "perspective",
+                "to_world": mi.ScalarTransform4f().look_at(origin=[3, 1.5, -2], target=[0, 0.3, 0.4], up=[0.2, 1, 0.1]),
+            },
+        }
+    )
     rng = np.random.default_rng(3)
     world = rng.normal(size=(6, 5, 3))
     world /= np.linalg.norm(world, axis=-1, keepdims=True)
@@ -311,8 +365,14 @@ def test_nan_in_noisy_input_is_reported_not_fatal(renders, tmp_path):
     layers["diffuse"][5, 7, :] = np.nan
     layers["diffuse"][10, 3, 1] = np.inf
     write_exr(copy / "spp0002.exr", layers)
-    result = evaluate(find_test_images(tmp_path / "renders"), [NoisyInput(), OidnDenoiser()], tmp_path / "out",
-                      progress=False, repeats=1, warmup=0)
+    result = evaluate(
+        find_test_images(tmp_path / "renders"),
+        [NoisyInput(), OidnDenoiser()],
+        tmp_path / "out",
+        progress=False,
+        repeats=1,
+        warmup=0,
+    )
     raw = {r.spp: r for r in result.path_tracer}
     assert raw[2].nonfinite == 4 and raw[4].nonfinite == 0
     by_method = {(r.method, r.spp): r for r in result.records}
@@ -329,9 +389,12 @@ def _synthetic_layers(h, w, seed=0):
     rng = np.random.default_rng(seed)
     normal = rng.normal(size=(h, w, 3)).astype(np.float32)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    return {"diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
-            "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
-            "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32), "normal": normal}
+    return {
+        "diffuse": rng.gamma(1.0, 0.5, (h, w, 3)).astype(np.float32),
+        "specular": rng.gamma(0.5, 0.2, (h, w, 3)).astype(np.float32),
+        "albedo": rng.uniform(0, 1, (h, w, 3)).astype(np.float32),
+        "normal": normal,
+    }
 
 
 @pytest.mark.parametrize("size", [(1, 1), (127, 129), (37, 4000)])
@@ -360,6 +423,7 @@ def test_oidn_sanitizes_nonfinite_colour():
 
 class _Shifted:
     """A real (if useless) denoiser: the noisy image rolled by one pixel, to exercise the interface."""
+
     name = "shifted"
     device = "cpu"
 
@@ -414,9 +478,18 @@ def test_reference_floor_predicts_the_relmse_between_two_independent_references(
 
     folders = []
     for seed in (0, 1):
-        cfg = load_config(None, [f"run.workdir='{tmp_path / str(seed)}'", "run.scheduler=sync", f"render.seed={seed}",
-                                 "render.resolution=[32, 32]", "render.spp=[4]", "render.reference_spp=64",
-                                 "corpus.n_scenes=4"])
+        cfg = load_config(
+            None,
+            [
+                f"run.workdir='{tmp_path / str(seed)}'",
+                "run.scheduler=sync",
+                f"render.seed={seed}",
+                "render.resolution=[32, 32]",
+                "render.spp=[4]",
+                "render.reference_spp=64",
+                "corpus.n_scenes=4",
+            ],
+        )
         folders.append(render_corpus(cfg, progress=False).renders_dir)
     for scene in sorted(p.name for p in folders[0].iterdir()):
         a, b = (read_exr(folder / scene / "reference.exr") for folder in folders)
@@ -432,8 +505,9 @@ def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
     floors = {}
     for folder in sorted(renders.iterdir()):
         ref = read_exr(folder / "reference.exr")
-        floors[folder.name] = reference_floor(ref["diffuse_var"] + ref.get("specular_var", 0),
-                                              ref["diffuse"] + ref.get("specular", 0))
+        floors[folder.name] = reference_floor(
+            ref["diffuse_var"] + ref.get("specular_var", 0), ref["diffuse"] + ref.get("specular", 0)
+        )
     assert all(0 < f < 0.1 for f in floors.values())
     for r in result.records + result.path_tracer:
         assert r.reference_floor == pytest.approx(floors[r.scene_id], rel=1e-12)
@@ -442,7 +516,8 @@ def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
     for row in rows:
         assert float(row["reference_floor"]) == pytest.approx(np.mean(list(floors.values())), rel=1e-9)
         assert float(row["relmse_minus_floor_avg"]) == pytest.approx(
-            float(row["relmse_avg"]) - float(row["reference_floor"]), rel=1e-9, abs=1e-12)
+            float(row["relmse_avg"]) - float(row["reference_floor"]), rel=1e-9, abs=1e-12
+        )
     md = (out / "table1.md").read_text()
     floor_rows = [line for line in md.splitlines() if "| reference floor |" in line]
     assert len(floor_rows) == 2 and f"| {np.mean(list(floors.values())):.4f} |" in floor_rows[0]
@@ -461,8 +536,9 @@ def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_pa
 
     weights = noise_input_weights(tmp_path / "noise.pt")
     denoiser = load_denoiser(weights, DenoiserOptions(dtype=None))
-    result = evaluate(find_test_images(renders), [NoisyInput(), denoiser], tmp_path / "out", progress=False,
-                      repeats=1, warmup=0)  # the renders carry diffuse_var and specular_var
+    result = evaluate(
+        find_test_images(renders), [NoisyInput(), denoiser], tmp_path / "out", progress=False, repeats=1, warmup=0
+    )  # the renders carry diffuse_var and specular_var
     assert all(math.isfinite(r.relmse) for r in result.records)
     scene = sorted(renders.iterdir())[0]
     copy = tmp_path / "renders" / scene.name
@@ -470,7 +546,16 @@ def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_pa
     layers = read_exr(copy / "spp0002.exr")
     layers = {name: layer for name, layer in layers.items() if not name.endswith("_var")}
     write_exr(copy / "spp0002.exr", layers)
-    with pytest.raises(EvalError, match=rf"{copy / 'spp0002.exr'}: lacks layer\(s\) diffuse_var(, specular_var)?, "
-                                        rf"which admc's weights {weights} read"):
-        evaluate(find_test_images(tmp_path / "renders"), [NoisyInput(), denoiser], tmp_path / "out2",
-                 progress=False, repeats=1, warmup=0)
+    with pytest.raises(
+        EvalError,
+        match=rf"{copy / 'spp0002.exr'}: lacks layer\(s\) diffuse_var(, specular_var)?, "
+        rf"which admc's weights {weights} read",
+    ):
+        evaluate(
+            find_test_images(tmp_path / "renders"),
+            [NoisyInput(), denoiser],
+            tmp_path / "out2",
+            progress=False,
+            repeats=1,
+            warmup=0,
+        )

@@ -1,5 +1,6 @@
 """`admc-pipe export`: the shipped weights' generators as ONNX graphs, run by ONNX Runtime, equal torch's
 float32 forward pass at sizes the trace never saw, darkness gate included; and its user errors."""
+
 import json
 
 import numpy as np
@@ -26,15 +27,21 @@ def log_inputs(generator, height, width, seed=0):
     """Random log-domain inputs with a black block far wider than the gate's radius (the gate's job)."""
     rng = np.random.default_rng(seed)
     noisy = rng.gamma(0.7, 0.8, size=(1, 3, height, width)).astype(np.float32)
-    noisy[..., 4:height - 3, 5:width // 2 + 20] = 0.0
+    noisy[..., 4 : height - 3, 5 : width // 2 + 20] = 0.0
     inputs = {"noisy": noisy, "features": rng.random((1, 7, height, width), dtype=np.float32)}
     if generator.config.refines:
         inputs["base"] = rng.gamma(0.7, 0.8, size=(1, 3, height, width)).astype(np.float32)
     return inputs
 
 
-@pytest.mark.parametrize("weights,base", [("admc-small-pretrained.pt", "noisy"), ("admc-small-refiner.pt", "oidn"),
-                                          ("admc-small-refiner-fast.pt", "oidn-fast")])
+@pytest.mark.parametrize(
+    "weights,base",
+    [
+        ("admc-small-pretrained.pt", "noisy"),
+        ("admc-small-refiner.pt", "oidn"),
+        ("admc-small-refiner-fast.pt", "oidn-fast"),
+    ],
+)
 def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weights, base):
     written = export_onnx(WEIGHTS_DIR / weights, tmp_path / "onnx")  # what `admc-pipe export` calls
     assert sorted(p.name for p in written) == ["admc.json", "diffuse.onnx", "specular.onnx"]
@@ -46,8 +53,9 @@ def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weigh
     assert manifest["tile"]["halo"] == manifest["receptive_radius"] == 12  # 4 blocks: 1 + 8 + 1 + 2
     assert manifest["inputs"]["features"][:3] == ["normal.X", "normal.Y", "normal.Z"]
     for branch, generator in generators.items():
-        session = onnxruntime.InferenceSession(str(tmp_path / "onnx" / manifest["graphs"][branch]),
-                                               providers=["CPUExecutionProvider"])
+        session = onnxruntime.InferenceSession(
+            str(tmp_path / "onnx" / manifest["graphs"][branch]), providers=["CPUExecutionProvider"]
+        )
         assert [i.name for i in session.get_inputs()] == list(log_inputs(generator, 8, 8))
         for height, width in ((45, 70), (13, 9)):  # the trace saw 8x8; 13x9 is narrower than the black block
             inputs = log_inputs(generator, height, width)
@@ -57,14 +65,16 @@ def test_exported_graphs_equal_torch_in_onnx_runtime_at_any_size(tmp_path, weigh
             assert got.shape == (1, 3, height, width)
             assert np.abs(got - expected).max() <= FLOAT32_LOG_TOLERANCE, (branch, height, width)
             if base == "noisy":  # where no light lies within the gate's radius, the output stays black
-                assert np.all(got[..., 4 + 12:height - 3 - 12, 5 + 12:width // 2 + 20 - 12] == 0)
+                assert np.all(got[..., 4 + 12 : height - 3 - 12, 5 + 12 : width // 2 + 20 - 12] == 0)
 
 
 def test_export_needs_a_folder_and_real_weights(tmp_path):
     afile = tmp_path / "taken"
     afile.write_text("mine")
-    refused(run("export", str(WEIGHTS_DIR / "admc-small-pretrained.pt"), "-o", str(afile)),
-            f"{afile}: exists and is not a folder")
+    refused(
+        run("export", str(WEIGHTS_DIR / "admc-small-pretrained.pt"), "-o", str(afile)),
+        f"{afile}: exists and is not a folder",
+    )
     assert afile.read_text() == "mine"
     notes = tmp_path / "notes.pt"
     notes.write_text("not weights")
@@ -86,18 +96,24 @@ def test_noise_input_weights_export_the_noise_map_as_an_input_of_its_own(tmp_pat
     assert "noise" in manifest["inputs"] and len(manifest["inputs"]["features"]) == 7
     generators = load_denoiser(weights, DenoiserOptions(dtype=torch.float32)).generators
     for branch, generator in generators.items():
-        session = onnxruntime.InferenceSession(str(tmp_path / "onnx" / manifest["graphs"][branch]),
-                                               providers=["CPUExecutionProvider"])
+        session = onnxruntime.InferenceSession(
+            str(tmp_path / "onnx" / manifest["graphs"][branch]), providers=["CPUExecutionProvider"]
+        )
         names = ["noisy", "features", "noise"] + (["base"] if generator.config.refines else [])
         assert [i.name for i in session.get_inputs()] == names
         inputs = log_inputs(generator, 45, 70)
-        inputs = {"noisy": inputs["noisy"], "features": inputs["features"],
-                  "noise": np.random.default_rng(1).random((1, 1, 45, 70), dtype=np.float32),
-                  **({"base": inputs["base"]} if "base" in inputs else {})}
+        inputs = {
+            "noisy": inputs["noisy"],
+            "features": inputs["features"],
+            "noise": np.random.default_rng(1).random((1, 1, 45, 70), dtype=np.float32),
+            **({"base": inputs["base"]} if "base" in inputs else {}),
+        }
         with torch.no_grad():
-            expected = generator(torch.from_numpy(inputs["noisy"]),
-                                 torch.from_numpy(np.concatenate([inputs["features"], inputs["noise"]], axis=1)),
-                                 torch.from_numpy(inputs["base"]) if "base" in inputs else None).numpy()
+            expected = generator(
+                torch.from_numpy(inputs["noisy"]),
+                torch.from_numpy(np.concatenate([inputs["features"], inputs["noise"]], axis=1)),
+                torch.from_numpy(inputs["base"]) if "base" in inputs else None,
+            ).numpy()
         got = session.run(None, inputs)[0]
         assert np.abs(got - expected).max() <= FLOAT32_LOG_TOLERANCE, branch
 
@@ -116,8 +132,17 @@ def test_a_slim_generator_exports_and_equals_torch_in_onnx_runtime():
     from admc.model.nets.settings import ModelSettings
 
     torch.manual_seed(0)
-    generator = Generator(ModelSettings(channels=16, blocks=4, cond_channels=16, encoder_channels=32,
-                                          input_skip=True, cfm_per_block=1, condition_layers=1)).eval()
+    generator = Generator(
+        ModelSettings(
+            channels=16,
+            blocks=4,
+            cond_channels=16,
+            encoder_channels=32,
+            input_skip=True,
+            cfm_per_block=1,
+            condition_layers=1,
+        )
+    ).eval()
     for p in generator.parameters():  # larger than the init's, so every layer changes the output
         torch.nn.init.normal_(p, std=0.1)
     session = onnxruntime.InferenceSession(generator_graph(generator), providers=["CPUExecutionProvider"])

@@ -2,6 +2,7 @@
 (it imports nothing of admc) it gives what `admc-pipe denoise --engine onnxruntime` gives, on a real render
 with environment pixels and resolved regions, dim, with broken pixels, without depth and coverage, for
 admc, admc+oidn and noise-input weights. A step admc.json left out or described wrongly shows here."""
+
 import ast
 import json
 import subprocess
@@ -35,8 +36,13 @@ def network_domain(layers: dict[str, np.ndarray], *outputs: dict[str, np.ndarray
     branch's log domain (a relative error, for dark pixels too)."""
     clean, _ = sanitize_layers(layers)
     gain = np.float32(exposure_gain(clean["diffuse"] + clean["specular"]))
-    return [{"diffuse": diffuse_forward(out["diffuse"] * gain, clean["albedo"]),
-             "specular": specular_forward(out["specular"] * gain)} for out in outputs]
+    return [
+        {
+            "diffuse": diffuse_forward(out["diffuse"] * gain, clean["albedo"]),
+            "specular": specular_forward(out["specular"] * gain),
+        }
+        for out in outputs
+    ]
 
 
 def scene(mi) -> dict:
@@ -45,19 +51,37 @@ def scene(mi) -> dict:
     light = {"type": "rgb", "value": [60, 55, 50]}
     return {
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0.6, 3], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 64, "height": 48, "rfilter": {"type": "box"}}},
-        "floor": {"type": "rectangle",
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard",
-                                                              "to_uv": mi.ScalarTransform4f().scale(6)}},
-                  "to_world": mi.ScalarTransform4f().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(1.5)},
-        "ball": {"type": "sphere", "radius": 0.4, "center": [0.3, -0.1, 0],
-                 "bsdf": {"type": "roughplastic", "alpha": 0.1}},
-        "box": {"type": "cube", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}},
-                "to_world": mi.ScalarTransform4f().translate([-0.7, -0.3, 0.6]).scale(0.2)},
-        "light": {"type": "sphere", "radius": 0.1, "center": [-0.8, 1.0, 0.5],
-                  "emitter": {"type": "area", "radiance": light}},
+        "sensor": {
+            "type": "perspective",
+            "fov": 40,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0.6, 3], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 64, "height": 48, "rfilter": {"type": "box"}},
+        },
+        "floor": {
+            "type": "rectangle",
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {"type": "checkerboard", "to_uv": mi.ScalarTransform4f().scale(6)},
+            },
+            "to_world": mi.ScalarTransform4f().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(1.5),
+        },
+        "ball": {
+            "type": "sphere",
+            "radius": 0.4,
+            "center": [0.3, -0.1, 0],
+            "bsdf": {"type": "roughplastic", "alpha": 0.1},
+        },
+        "box": {
+            "type": "cube",
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}},
+            "to_world": mi.ScalarTransform4f().translate([-0.7, -0.3, 0.6]).scale(0.2),
+        },
+        "light": {
+            "type": "sphere",
+            "radius": 0.1,
+            "center": [-0.8, 1.0, 0.5],
+            "emitter": {"type": "area", "radiance": light},
+        },
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}},
     }
 
@@ -79,8 +103,11 @@ def render(variant) -> dict[str, np.ndarray]:
 
 def dim(layers):
     """1/64 of the exposure (variances 1/64^2): exposure normalisation scales it back up."""
-    return {**layers, **{name: layers[name] / 64 for name in ("diffuse", "specular")},
-            **{name: layers[name] / 64 ** 2 for name in ("diffuse_var", "specular_var")}}
+    return {
+        **layers,
+        **{name: layers[name] / 64 for name in ("diffuse", "specular")},
+        **{name: layers[name] / 64**2 for name in ("diffuse_var", "specular_var")},
+    }
 
 
 def broken(layers):
@@ -97,8 +124,12 @@ def without_depth_and_coverage(layers):
     return {name: layer for name, layer in layers.items() if name not in ("depth", "coverage")}
 
 
-CASES = {"as rendered": lambda layers: layers, "dim": dim, "broken": broken,
-         "without depth and coverage": without_depth_and_coverage}
+CASES = {
+    "as rendered": lambda layers: layers,
+    "dim": dim,
+    "broken": broken,
+    "without depth and coverage": without_depth_and_coverage,
+}
 
 
 @pytest.fixture(scope="module")
@@ -111,18 +142,38 @@ def exported(tmp_path_factory):
             folders[weights] = tmp_path_factory.mktemp("onnx")
             export_onnx(weights, folders[weights])
         return folders[weights]
+
     return export
 
 
 def compare(tmp_path, export_folder: Path, weights: Path, layers: dict[str, np.ndarray]) -> None:
     render_file = tmp_path / "render.exr"
     write_exr(render_file, layers, precision="float")
-    admc = run("denoise", str(render_file), "-o", str(tmp_path / "admc.exr"), "--engine", "onnxruntime",
-               "--weights", str(weights))
+    admc = run(
+        "denoise",
+        str(render_file),
+        "-o",
+        str(tmp_path / "admc.exr"),
+        "--engine",
+        "onnxruntime",
+        "--weights",
+        str(weights),
+    )
     assert admc.returncode == 0, admc.stderr
-    example = subprocess.run([sys.executable, str(EXAMPLE), str(export_folder), str(render_file),
-                              str(tmp_path / "example.exr"), "--tile", "20"],
-                             capture_output=True, text=True, timeout=300)
+    example = subprocess.run(
+        [
+            sys.executable,
+            str(EXAMPLE),
+            str(export_folder),
+            str(render_file),
+            str(tmp_path / "example.exr"),
+            "--tile",
+            "20",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert example.returncode == 0, example.stderr
     want, got = read_exr(tmp_path / "admc.exr", OUTPUT_LAYERS), read_exr(tmp_path / "example.exr", OUTPUT_LAYERS)
     assert np.isfinite(got[""]).all() and np.array_equal(got[""], got["diffuse"] + got["specular"])
@@ -175,5 +226,15 @@ def test_the_example_imports_nothing_of_admc():
             imported |= {alias.name.split(".")[0] for alias in node.names}
         elif isinstance(node, ast.ImportFrom):
             imported.add((node.module or "").split(".")[0])
-    assert imported <= {"__future__", "argparse", "json", "math", "pathlib", "numpy", "onnxruntime", "OpenEXR",
-                        "scipy", "pyoidn"}, imported
+    assert imported <= {
+        "__future__",
+        "argparse",
+        "json",
+        "math",
+        "pathlib",
+        "numpy",
+        "onnxruntime",
+        "OpenEXR",
+        "scipy",
+        "pyoidn",
+    }, imported

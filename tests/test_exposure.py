@@ -1,5 +1,6 @@
 """Exposure normalisation: dim images are denoised at the trained brightness and scaled back, dark regions
 again at a higher exposure (CPU)."""
+
 import numpy as np
 import pytest
 import torch
@@ -10,12 +11,23 @@ from test_unet import strong_unet
 from admc.model.inference.denoiser import FullImageDenoiser
 from admc.model.inference.exposure import dark_region
 from admc.model.inference.options import DenoiserOptions
-from admc.model.inference.exposure import DARK_GAIN, DARK_LEVEL, TRAINED_BRIGHTNESS, brightness, dark_weights, exposure_gain
+from admc.model.inference.exposure import (
+    DARK_GAIN,
+    DARK_LEVEL,
+    TRAINED_BRIGHTNESS,
+    brightness,
+    dark_weights,
+    exposure_gain,
+)
 from admc.model.transforms import RADIANCE_MAX, diffuse_forward, specular_forward
 
+
 def denoiser(normalize: bool, dtype: torch.dtype, dark_pass: bool = True) -> FullImageDenoiser:
-    return FullImageDenoiser(strong_generator(1), strong_generator(2), DenoiserOptions(dtype=dtype,
-                             normalize_exposure=normalize, dark_pass=dark_pass))
+    return FullImageDenoiser(
+        strong_generator(1),
+        strong_generator(2),
+        DenoiserOptions(dtype=dtype, normalize_exposure=normalize, dark_pass=dark_pass),
+    )
 
 
 def scaled(layers: dict, factor: float) -> dict:
@@ -55,8 +67,9 @@ def test_a_dim_image_denoises_the_same_at_any_exposure(inference_dtype):
 def test_bright_images_and_environment_pixels_are_untouched(inference_dtype):
     layers = render_layers(16, 16, seed=4)
     assert brightness(layers["diffuse"] + layers["specular"]) > TRAINED_BRIGHTNESS
-    np.testing.assert_array_equal(denoiser(True, inference_dtype)(layers).image,
-                                  denoiser(False, inference_dtype)(layers).image)
+    np.testing.assert_array_equal(
+        denoiser(True, inference_dtype)(layers).image, denoiser(False, inference_dtype)(layers).image
+    )
     dim = scaled(layers, 0.001)
     dim["coverage"] = np.ones((16, 16, 1), np.float32)
     dim["coverage"][:, :5] = 0.0  # environment: passed through, whatever the gain
@@ -85,8 +98,11 @@ class LogOffset(nn.Module):
 
 def offset_denoiser(dark_pass: bool) -> FullImageDenoiser:
     """float32: an addition runs in float32 under autocast too (only convs and matmuls go to bf16)."""
-    return FullImageDenoiser(LogOffset(), LogOffset(), DenoiserOptions(overlap=0, dtype=torch.float32, normalize_exposure=False,
-                             dark_pass=dark_pass))
+    return FullImageDenoiser(
+        LogOffset(),
+        LogOffset(),
+        DenoiserOptions(overlap=0, dtype=torch.float32, normalize_exposure=False, dark_pass=dark_pass),
+    )
 
 
 def test_dark_regions_come_from_the_brighter_pass_and_bright_images_run_once():
@@ -128,15 +144,23 @@ def test_the_dark_pass_runs_on_the_dark_region_only_and_equals_a_whole_image_pas
         return strong_generator(seed, scale=0.7) if backbone == "residual" else strong_unet(seed)
 
     def make(dark_pass: bool) -> FullImageDenoiser:
-        return FullImageDenoiser(generator(1), generator(2), DenoiserOptions(tile=16 if backbone == "residual" else 32,
-                                 dtype=inference_dtype, normalize_exposure=False, dark_pass=dark_pass))
+        return FullImageDenoiser(
+            generator(1),
+            generator(2),
+            DenoiserOptions(
+                tile=16 if backbone == "residual" else 32,
+                dtype=inference_dtype,
+                normalize_exposure=False,
+                dark_pass=dark_pass,
+            ),
+        )
 
     twice, once = make(True)(layers), make(False)(layers)
     brighter = make(False)(scaled(layers, DARK_GAIN))  # the whole image at the second pass's exposure
     weights = dark_weights(once.image, 1.0, layers["coverage"])
     rows, cols = dark_region(weights, make(True).overlap, make(True).alignment)
     assert 0 < rows.start < top and rows.stop == height and 0 < cols.start < left and cols.stop == width
-    assert not weights[:rows.start].any() and not weights[:, :cols.start].any()
+    assert not weights[: rows.start].any() and not weights[:, : cols.start].any()
     albedo = layers["albedo"]
     for branch, forward in (("diffuse", lambda x: diffuse_forward(x, albedo)), ("specular", specular_forward)):
         first, second = getattr(once, branch), getattr(brighter, branch) / DARK_GAIN

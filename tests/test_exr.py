@@ -1,4 +1,5 @@
 """EXR store: real files written and read back with OpenEXR and OpenImageIO."""
+
 import numpy as np
 import OpenEXR
 import OpenImageIO as oiio
@@ -10,8 +11,7 @@ from admc.stores.exr import ExrError, exr_layers, nonfinite_report, read_exr, re
 
 def make_layers(h=16, w=24, seed=0, names=tuple(LAYERS)):
     rng = np.random.default_rng(seed)
-    return {name: (rng.standard_normal((h, w, len(LAYERS[name].channels))) * 50).astype(np.float32)
-            for name in names}
+    return {name: (rng.standard_normal((h, w, len(LAYERS[name].channels))) * 50).astype(np.float32) for name in names}
 
 
 def write_oiio(path, pixels, fmt="float"):
@@ -36,15 +36,18 @@ def test_half_round_trip_equals_float16_cast(tmp_path):
 def test_float_round_trip_is_exact_and_keeps_attributes(tmp_path):
     layers = make_layers(names=("diffuse", "albedo", "normal", "depth"))
     layers["diffuse"][0, 0] = 1e9  # fine in float
-    write_exr(tmp_path / "ref.exr", layers, precision="float", attributes={"admc_scene": "room-0003", "admc_spp": "4096"})
+    write_exr(
+        tmp_path / "ref.exr", layers, precision="float", attributes={"admc_scene": "room-0003", "admc_spp": "4096"}
+    )
     back = read_exr(tmp_path / "ref.exr", ["depth", "diffuse"])
     assert list(back) == ["depth", "diffuse"]
     np.testing.assert_array_equal(back["diffuse"], layers["diffuse"])
     np.testing.assert_array_equal(back["depth"], layers["depth"])
     header = OpenEXR.File(str(tmp_path / "ref.exr"), header_only=True).header()
     assert header["admc_scene"] == "room-0003" and header["admc_spp"] == "4096"
-    channel_types = {c.name: c.type() for c in OpenEXR.File(str(tmp_path / "ref.exr"), separate_channels=True)
-                     .channels().values()}
+    channel_types = {
+        c.name: c.type() for c in OpenEXR.File(str(tmp_path / "ref.exr"), separate_channels=True).channels().values()
+    }
     assert channel_types["diffuse.R"] == OpenEXR.FLOAT and channel_types["depth.Z"] == OpenEXR.FLOAT
     assert exr_layers(tmp_path / "ref.exr") == ["albedo", "depth", "diffuse", "normal"]
 
@@ -71,14 +74,17 @@ def test_half_refuses_overflow_but_keeps_existing_inf_and_nan(tmp_path):
     assert read_exr(tmp_path / "b.exr")["depth"][1, 1, 0] == -1e5
 
 
-@pytest.mark.parametrize("layers, message", [
-    ({"beauty": np.zeros((4, 4, 3), np.float32)}, "unknown layer 'beauty'"),
-    ({"normal": np.zeros((4, 4, 1), np.float32)}, r"'normal' must be \(H, W, 3\)"),
-    ({"depth": np.zeros((4, 4), np.float32)}, r"'depth' must be \(H, W, 1\)"),
-    ({"depth": np.zeros((4, 4, 1), np.float32), "albedo": np.zeros((4, 5, 3), np.float32)}, "differ in size"),
-    ({"depth": np.zeros((4, 4, 1), np.int32)}, "must be a float array"),
-    ({}, "no layers"),
-])
+@pytest.mark.parametrize(
+    "layers, message",
+    [
+        ({"beauty": np.zeros((4, 4, 3), np.float32)}, "unknown layer 'beauty'"),
+        ({"normal": np.zeros((4, 4, 1), np.float32)}, r"'normal' must be \(H, W, 3\)"),
+        ({"depth": np.zeros((4, 4), np.float32)}, r"'depth' must be \(H, W, 1\)"),
+        ({"depth": np.zeros((4, 4, 1), np.float32), "albedo": np.zeros((4, 5, 3), np.float32)}, "differ in size"),
+        ({"depth": np.zeros((4, 4, 1), np.int32)}, "must be a float array"),
+        ({}, "no layers"),
+    ],
+)
 def test_write_rejects_bad_layers(tmp_path, layers, message):
     with pytest.raises(ExrError, match=message):
         write_exr(tmp_path / "bad.exr", layers)
@@ -136,7 +142,8 @@ def test_missing_layer_names_what_exists(tmp_path):
 def test_layer_with_only_some_channels(tmp_path):
     plane = np.ones((4, 4), np.float32)
     OpenEXR.File({}, {"normal.X": plane.copy(), "normal.Z": plane.copy(), "depth.Z": plane.copy()}).write(
-        str(tmp_path / "partial.exr"))
+        str(tmp_path / "partial.exr")
+    )
     with pytest.raises(ExrError, match=r"partial\.exr: layer 'normal' lacks channel\(s\) Y \(has X, Z\)"):
         read_exr(tmp_path / "partial.exr")
     assert read_exr(tmp_path / "partial.exr", ["depth"])["depth"].shape == (4, 4, 1)
@@ -144,9 +151,11 @@ def test_layer_with_only_some_channels(tmp_path):
 
 def test_subsampled_channel_is_an_inconsistent_size(tmp_path):
     full = np.ones((8, 8), np.float32)
-    channels = {"albedo.R": OpenEXR.Channel("albedo.R", full.copy()),
-                "albedo.G": OpenEXR.Channel("albedo.G", full.copy()),
-                "albedo.B": OpenEXR.Channel("albedo.B", full.copy(), 2, 2)}  # stored 4x4
+    channels = {
+        "albedo.R": OpenEXR.Channel("albedo.R", full.copy()),
+        "albedo.G": OpenEXR.Channel("albedo.G", full.copy()),
+        "albedo.B": OpenEXR.Channel("albedo.B", full.copy(), 2, 2),
+    }  # stored 4x4
     OpenEXR.File({}, channels).write(str(tmp_path / "sub.exr"))
     with pytest.raises(ExrError, match=r"sub\.exr: channel albedo\.B is 4x4, the image is 8x8"):
         read_exr(tmp_path / "sub.exr")
@@ -163,8 +172,14 @@ def test_plain_rgb_file_is_the_beauty_layer_only(tmp_path):
 def test_beauty_round_trips_as_plain_rgb_channels(tmp_path):
     image = np.random.default_rng(0).random((5, 6, 3), dtype=np.float32)
     write_exr(tmp_path / "out.exr", {BEAUTY: image, "diffuse": image * 0.5}, precision="float")
-    assert sorted(OpenEXR.File(str(tmp_path / "out.exr")).header()["channels"][i].name for i in range(6)) == \
-        ["B", "G", "R", "diffuse.B", "diffuse.G", "diffuse.R"]
+    assert sorted(OpenEXR.File(str(tmp_path / "out.exr")).header()["channels"][i].name for i in range(6)) == [
+        "B",
+        "G",
+        "R",
+        "diffuse.B",
+        "diffuse.G",
+        "diffuse.R",
+    ]
     np.testing.assert_array_equal(read_exr(tmp_path / "out.exr")[BEAUTY], image)
 
 
@@ -208,6 +223,8 @@ def test_nonfinite_report_counts_per_layer():
     normal = -np.ones((4, 4, 3), np.float32)
     normal[3, 3, 0] = np.nan
     report = nonfinite_report({"diffuse": diffuse, "normal": normal, "albedo": np.ones((4, 4, 3), np.float32)})
-    assert report == {"diffuse": {"nan": 1, "posinf": 1, "neginf": 1, "negative": 1},
-                      "normal": {"nan": 1, "posinf": 0, "neginf": 0, "negative": 0}}
+    assert report == {
+        "diffuse": {"nan": 1, "posinf": 1, "neginf": 1, "negative": 1},
+        "normal": {"nan": 1, "posinf": 0, "neginf": 0, "negative": 0},
+    }
     assert nonfinite_report({"normal": normal}, negative_layers={"normal"})["normal"]["negative"] == 47

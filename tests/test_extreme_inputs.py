@@ -5,6 +5,7 @@ sizes must give finite outputs, finite metrics and a report, never a crash or a 
 stays black: a small object on a black background and a scene lit by one small emitter come out no
 worse than their noisy input, exactly zero far from any light, and without a frame at the border.
 """
+
 import dataclasses
 import json
 
@@ -33,11 +34,13 @@ SHIPPED = WEIGHTS_DIR / "admc-small-pretrained.pt"
 
 
 def scene(h, w, rng, *, spp=1, specular=True):
-    layers = {"diffuse": rng.exponential(0.3, (h, w, 3)).astype(np.float32),
-              "albedo": rng.uniform(0.05, 0.9, (h, w, 3)).astype(np.float32),
-              "normal": np.tile(np.array([0, 0, 1], np.float32), (h, w, 1)),
-              "depth": rng.uniform(1, 3, (h, w, 1)).astype(np.float32),
-              "coverage": np.ones((h, w, 1), np.float32)}
+    layers = {
+        "diffuse": rng.exponential(0.3, (h, w, 3)).astype(np.float32),
+        "albedo": rng.uniform(0.05, 0.9, (h, w, 3)).astype(np.float32),
+        "normal": np.tile(np.array([0, 0, 1], np.float32), (h, w, 1)),
+        "depth": rng.uniform(1, 3, (h, w, 1)).astype(np.float32),
+        "coverage": np.ones((h, w, 1), np.float32),
+    }
     if specular:
         layers["specular"] = rng.exponential(0.05, (h, w, 3)).astype(np.float32)
     return layers
@@ -59,17 +62,26 @@ def extreme_cases(rng):
     environment["depth"][:] = 0.0
     environment["normal"][:] = 0.0
     environment["albedo"][:] = 1.0
-    return {"fireflies": fireflies, "poisoned": poisoned, "black": black, "white-albedo": white,
-            "environment-only": environment, "one-pixel": scene(1, 1, rng), "odd-127x129": scene(127, 129, rng),
-            "strip-37x4000": scene(37, 4000, rng, specular=False)}
+    return {
+        "fireflies": fireflies,
+        "poisoned": poisoned,
+        "black": black,
+        "white-albedo": white,
+        "environment-only": environment,
+        "one-pixel": scene(1, 1, rng),
+        "odd-127x129": scene(127, 129, rng),
+        "strip-37x4000": scene(37, 4000, rng, specular=False),
+    }
 
 
 @pytest.fixture
 def model(tmp_path_factory, inference_dtype):
     torch.manual_seed(0)
     weights = tmp_path_factory.mktemp("w") / "tiny.pt"
-    branches = {b: {"generator": Generator(TINY).state_dict(),
-                    "critic": torch.nn.Linear(1, 1).state_dict()} for b in ("diffuse", "specular")}
+    branches = {
+        b: {"generator": Generator(TINY).state_dict(), "critic": torch.nn.Linear(1, 1).state_dict()}
+        for b in ("diffuse", "specular")
+    }
     export_weights(weights, branches, {"model": dataclasses.asdict(TINY), "transform": transform_spec()})
     return load_denoiser(weights, DenoiserOptions(tile=64, dtype=inference_dtype))
 
@@ -94,8 +106,14 @@ def test_eval_on_extreme_cases_gives_finite_metrics_and_complete_tables(model, t
         write_exr(folder / "reference.exr", reference, precision="float")
         write_exr(folder / "spp0001.exr", layers, precision="float")
         images.append(TestImage(name, 1, folder / "spp0001.exr", folder / "reference.exr", 0.01))
-    result = evaluate(images, [NoisyInput(), OidnDenoiser(quality="fast"), model], tmp_path / "eval",
-                      progress=False, repeats=1, warmup=0)
+    result = evaluate(
+        images,
+        [NoisyInput(), OidnDenoiser(quality="fast"), model],
+        tmp_path / "eval",
+        progress=False,
+        repeats=1,
+        warmup=0,
+    )
     assert len(result.records) == 3 * len(images)
     for record in result.records:
         assert np.isfinite([record.relmse, record.psnr, record.one_minus_ssim]).all(), record
@@ -112,12 +130,22 @@ def test_real_one_spp_renders_through_eval(model, variant, tmp_path):
     from admc.pipeline.evaluation.inputs import find_test_images
     from admc.pipeline.stages.render import render_corpus
 
-    cfg = load_config(None, [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-                             "render.spp=[1]", "render.reference_spp=64", "corpus.n_scenes=2"])
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[1]",
+            "render.reference_spp=64",
+            "corpus.n_scenes=2",
+        ],
+    )
     images = find_test_images(render_corpus(cfg, progress=False).renders_dir)
     assert {t.spp for t in images} == {1}
-    result = evaluate(images, [NoisyInput(), OidnDenoiser(), model], tmp_path / "eval", progress=False,
-                      repeats=1, warmup=0)
+    result = evaluate(
+        images, [NoisyInput(), OidnDenoiser(), model], tmp_path / "eval", progress=False, repeats=1, warmup=0
+    )
     for record in result.records:
         assert np.isfinite([record.relmse, record.psnr, record.one_minus_ssim]).all(), record
         assert record.nonfinite == 0 and np.isfinite(read_image(record.image)).all(), record
@@ -132,25 +160,49 @@ def _dark_scenes(size: int) -> dict[str, dict]:
     import mitsuba as mi
 
     look = mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])
-    sensor = {"type": "perspective", "fov": 40, "to_world": look,
-              "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}}}
+    sensor = {
+        "type": "perspective",
+        "fov": 40,
+        "to_world": look,
+        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+    }
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.6, 0.6]}}
     object_on_black = {
-        "type": "scene", "sensor": sensor,
-        "ball": {"type": "sphere", "radius": 0.25, "center": [0.1, -0.05, 0],
-                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.5, 0.3]}}},
-        "bead": {"type": "sphere", "radius": 0.12, "center": [-0.35, 0.2, 0],
-                 "bsdf": {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.3, 0.6]}}},
+        "type": "scene",
+        "sensor": sensor,
+        "ball": {
+            "type": "sphere",
+            "radius": 0.25,
+            "center": [0.1, -0.05, 0],
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.5, 0.3]}},
+        },
+        "bead": {
+            "type": "sphere",
+            "radius": 0.12,
+            "center": [-0.35, 0.2, 0],
+            "bsdf": {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.3, 0.6]}},
+        },
         "light": {"type": "point", "position": [2, 2, 3], "intensity": {"type": "rgb", "value": [30, 30, 30]}},
     }
     small_emitter = {
-        "type": "scene", "sensor": sensor,
-        "floor": {"type": "rectangle", "bsdf": {"type": "roughplastic", "alpha": 0.2},
-                  "to_world": mi.ScalarTransform4f().translate([0, -0.3, -1])},
-        "box": {"type": "cube", "bsdf": grey,
-                "to_world": mi.ScalarTransform4f().translate([-0.3, -0.3, -0.8]).scale(0.15)},
-        "lamp": {"type": "sphere", "radius": 0.05, "center": [0.3, 0.2, -0.8],
-                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [200, 200, 200]}}},
+        "type": "scene",
+        "sensor": sensor,
+        "floor": {
+            "type": "rectangle",
+            "bsdf": {"type": "roughplastic", "alpha": 0.2},
+            "to_world": mi.ScalarTransform4f().translate([0, -0.3, -1]),
+        },
+        "box": {
+            "type": "cube",
+            "bsdf": grey,
+            "to_world": mi.ScalarTransform4f().translate([-0.3, -0.3, -0.8]).scale(0.15),
+        },
+        "lamp": {
+            "type": "sphere",
+            "radius": 0.05,
+            "center": [0.3, 0.2, -0.8],
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [200, 200, 200]}},
+        },
     }
     return {"object-on-black": object_on_black, "small-emitter": small_emitter}
 
@@ -217,9 +269,14 @@ def test_output_is_zero_where_nothing_is_lit_within_the_receptive_radius(shipped
 def test_border_rows_and_columns_match_the_interior_on_a_flat_input(shipped):
     """A flat image stays flat up to its border (zero padding made a frame 8-13 % off the interior)."""
     h, w = 40, 44
-    flat = {"diffuse": np.full((h, w, 3), 0.3, np.float32), "specular": np.full((h, w, 3), 0.05, np.float32),
-            "albedo": np.full((h, w, 3), 0.5, np.float32), "normal": np.tile(np.float32([0, 0, 1]), (h, w, 1)),
-            "depth": np.full((h, w, 1), 2.0, np.float32), "coverage": np.ones((h, w, 1), np.float32)}
+    flat = {
+        "diffuse": np.full((h, w, 3), 0.3, np.float32),
+        "specular": np.full((h, w, 3), 0.05, np.float32),
+        "albedo": np.full((h, w, 3), 0.5, np.float32),
+        "normal": np.tile(np.float32([0, 0, 1]), (h, w, 1)),
+        "depth": np.full((h, w, 1), 2.0, np.float32),
+        "coverage": np.ones((h, w, 1), np.float32),
+    }
     result = shipped(flat)
     # Replicate padding feeds the border the values the interior sees, so every pixel sums the same
     # products; only their order may differ between oneDNN kernels (row ends): test_inference.log_tolerance,

@@ -3,6 +3,7 @@ Chromium spoken to over the DevTools protocol on a pipe (stdlib only): images de
 errors or exceptions, no network requests, the synchronised zoom follows real mouse events, and a
 screenshot renders. Browser tests skip when Chromium is absent (CI installs Debian's chromium).
 """
+
 from __future__ import annotations
 
 import base64
@@ -21,36 +22,43 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from admc.pipeline.evaluation.html import (MAX_EMBED, ReportImage, embed_size, report_group, table_html,
-                                          write_report)
+from admc.pipeline.evaluation.html import MAX_EMBED, ReportImage, embed_size, report_group, table_html, write_report
 from admc.pipeline.evaluation.table1 import Cell, Note, Table1
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="the browser tests need Chromium "
-                                    "(apt-get install -y chromium, as .ci/run does)")
+needs_chromium = pytest.mark.skipif(
+    CHROMIUM is None, reason="the browser tests need Chromium (apt-get install -y chromium, as .ci/run does)"
+)
 
-TABLE = Table1(head=["spp", "denoiser", "1-SSIM", "PSNR", "relMSE"],
-               rows=[[Cell("4"), Cell("noisy"), Cell("0.41"), Cell("21.3"), Cell("0.0975")],
-                     [Cell(""), Cell("ours"), Cell("0.05", True), Cell("33.9", True), Cell("0.0079", True)]],
-               notes=[Note("", "Best average in bold."), Note("Devices:", "noisy: cpu; ours: <cpu>")])
+TABLE = Table1(
+    head=["spp", "denoiser", "1-SSIM", "PSNR", "relMSE"],
+    rows=[
+        [Cell("4"), Cell("noisy"), Cell("0.41"), Cell("21.3"), Cell("0.0975")],
+        [Cell(""), Cell("ours"), Cell("0.05", True), Cell("33.9", True), Cell("0.0079", True)],
+    ],
+    notes=[Note("", "Best average in bold."), Note("Devices:", "noisy: cpu; ours: <cpu>")],
+)
 
 
 # ---------------------------------------------------------------- inputs
+
 
 def _split_scene(scene_id: str, h: int, w: int, spp: int = 4, seed: int = 0) -> ReportImage:
     """Left half red, right half blue, green rising with the row: colours tell where the zoom looks."""
     rng = np.random.default_rng(seed)
     ref = np.zeros((h, w, 3), np.float32)
     ref[:, : w // 2, 0] = 0.8
-    ref[:, w // 2:, 2] = 0.8
+    ref[:, w // 2 :, 2] = 0.8
     ref[..., 1] = 0.2 * np.arange(h)[:, None] / h
     noisy = (ref * rng.exponential(1.0, ref.shape)).astype(np.float32)
     ours = (ref + rng.normal(0.0, 0.01, ref.shape)).astype(np.float32)
-    metrics = {"noisy": {"1-SSIM": 0.41, "PSNR": 21.3, "relMSE": 0.0975},
-               "ours": {"1-SSIM": 0.05, "PSNR": 33.9, "relMSE": 0.0079}}
+    metrics = {
+        "noisy": {"1-SSIM": 0.41, "PSNR": 21.3, "relMSE": 0.0975},
+        "ours": {"1-SSIM": 0.05, "PSNR": 33.9, "relMSE": 0.0079},
+    }
     return ReportImage(scene_id, spp, ref, {"noisy": noisy, "ours": ours}, metrics)
 
 
@@ -64,11 +72,16 @@ def _plot(path: Path) -> Path:
 
 
 def _report(tmp_path: Path, images: list[ReportImage], notes: tuple[str, ...] = ()) -> Path:
-    return write_report(tmp_path / "report", title="admc evaluation <test>", table=TABLE,
-                        metric_definitions={"relMSE": "mean (x - ref)^2 / (ref^2 + 0.01)", "PSNR": "dB on 8 bit"},
-                        plots=[_plot(tmp_path / "error_vs_time.png")], groups=[report_group(i) for i in images],
-                        device="cpu (test)",
-                        notes=list(notes))
+    return write_report(
+        tmp_path / "report",
+        title="admc evaluation <test>",
+        table=TABLE,
+        metric_definitions={"relMSE": "mean (x - ref)^2 / (ref^2 + 0.01)", "PSNR": "dB on 8 bit"},
+        plots=[_plot(tmp_path / "error_vs_time.png")],
+        groups=[report_group(i) for i in images],
+        device="cpu (test)",
+        notes=list(notes),
+    )
 
 
 def _extreme_images() -> list[ReportImage]:
@@ -77,8 +90,7 @@ def _extreme_images() -> list[ReportImage]:
     nan.outputs["ours"][20, 30] = np.inf
     black = _split_scene("black-reference", 16, 16)
     black.reference[:] = 0.0
-    return [nan, black, _split_scene("one-pixel", 1, 1), _split_scene("thin", 37, 4000),
-            _split_scene("tall", 900, 5)]
+    return [nan, black, _split_scene("one-pixel", 1, 1), _split_scene("thin", 37, 4000), _split_scene("tall", 900, 5)]
 
 
 def _data_uris(page: str) -> list[str]:
@@ -90,6 +102,7 @@ def _decode(uri: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- Python side, no browser
+
 
 def test_table_cells_bold_notes_and_escaping():
     """The page renders the Table1 object itself: its cells, the best ones <strong>, its notes, escaped."""
@@ -139,7 +152,7 @@ def test_embedded_pixels_tonemap_heatmap_nan_and_downscale(tmp_path):
     # heat map colour = inferno at (log10(mean_c (x - ref)^2 / (ref^2 + 0.01)) + 5) / 7, for both outputs
     for name, heat in (("noisy", nan_group[3]), ("ours", heat_ours)):
         x, ref = images[0].outputs[name][12, 2].astype(np.float64), images[0].reference[12, 2]
-        level = (np.clip(np.log10(np.mean((x - ref) ** 2 / (ref ** 2 + 0.01))), -5, 2) + 5) / 7
+        level = (np.clip(np.log10(np.mean((x - ref) ** 2 / (ref**2 + 0.01))), -5, 2) + 5) / 7
         expected = np.asarray(matplotlib.colormaps["inferno"](level)[:3]) * 255
         assert np.abs(heat[12, 2] - expected).max() <= 3, name
     assert "nan-output @ 4 spp: ours has 17 NaN/Inf pixels, shown magenta." in page
@@ -150,6 +163,7 @@ def test_embedded_pixels_tonemap_heatmap_nan_and_downscale(tmp_path):
 
 
 # ---------------------------------------------------------------- the browser
+
 
 class Chromium:
     """Headless Chromium driven over --remote-debugging-pipe: JSON messages, NUL-terminated, fds 3 and 4."""
@@ -163,11 +177,27 @@ class Chromium:
             os.dup2(from_browser_w, 4)
 
         self.process = subprocess.Popen(
-            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             "--hide-scrollbars", f"--user-data-dir={profile}", "--remote-debugging-pipe", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-            preexec_fn=wire_fds, pass_fds=(3, 4))
+            [
+                CHROMIUM,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--hide-scrollbars",
+                f"--user-data-dir={profile}",
+                "--remote-debugging-pipe",
+                "about:blank",
+            ],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=wire_fds,
+            pass_fds=(3, 4),
+        )
         os.close(to_browser_r)
         os.close(from_browser_w)
         self._buffer = b""
@@ -192,8 +222,7 @@ class Chromium:
         message, self._buffer = self._buffer.split(b"\0", 1)
         return json.loads(message)
 
-    def send(self, method: str, params: dict | None = None, session: str | None = None,
-             timeout: float = 30.0) -> dict:
+    def send(self, method: str, params: dict | None = None, session: str | None = None, timeout: float = 30.0) -> dict:
         self._next_id += 1
         message = {"id": self._next_id, "method": method, "params": params or {}}
         if session:
@@ -226,8 +255,10 @@ class Page:
         self.session = browser.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
         for domain in ("Page", "Runtime", "Log", "Network"):
             self.send(f"{domain}.enable")
-        self.send("Emulation.setDeviceMetricsOverride",
-                  {"width": size[0], "height": size[1], "deviceScaleFactor": 1, "mobile": False})
+        self.send(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": size[0], "height": size[1], "deviceScaleFactor": 1, "mobile": False},
+        )
         self.send("Page.navigate", {"url": path.resolve().as_uri()})
         browser.wait_event("Page.loadEventFired", self.session)
 
@@ -235,8 +266,7 @@ class Page:
         return self.browser.send(method, params, self.session)
 
     def js(self, expression: str):
-        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True,
-                                                "awaitPromise": True})
+        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True, "awaitPromise": True})
         if "exceptionDetails" in result:
             raise RuntimeError(f"page JS failed: {result['exceptionDetails']}")
         return result["result"].get("value")
@@ -277,8 +307,11 @@ class Page:
         return found
 
     def requested_urls(self) -> list[str]:
-        return [e["params"]["request"]["url"] for e in self.browser.events
-                if e.get("sessionId") == self.session and e.get("method") == "Network.requestWillBeSent"]
+        return [
+            e["params"]["request"]["url"]
+            for e in self.browser.events
+            if e.get("sessionId") == self.session and e.get("method") == "Network.requestWillBeSent"
+        ]
 
     def screenshot(self, path: Path) -> Path:
         path.write_bytes(base64.b64decode(self.send("Page.captureScreenshot", {"format": "png"})["data"]))
@@ -288,7 +321,7 @@ class Page:
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
     chromium = Chromium(tmp_path_factory.mktemp("chromium-profile"))
-    chromium.send("Browser.getVersion")   # fails fast when the browser did not start
+    chromium.send("Browser.getVersion")  # fails fast when the browser did not start
     yield chromium
     chromium.close()
 
@@ -313,7 +346,7 @@ def test_report_loads_decodes_every_image_without_errors_or_network(tmp_path, br
     for shot in (top, images_shot):
         pixels = np.asarray(Image.open(shot).convert("RGB"))
         assert pixels.shape == (1000, 1400, 3)
-        assert pixels.std() > 10   # not a blank page
+        assert pixels.std() > 10  # not a blank page
     if os.environ.get("ADMC_REPORT_SCREENSHOT_DIR"):  # for a person who wants to look at the page
         for shot in (top, images_shot):
             shutil.copy(shot, Path(os.environ["ADMC_REPORT_SCREENSHOT_DIR"]) / shot.name)
@@ -324,13 +357,15 @@ def test_zoom_follows_hover_pins_on_click_and_is_synchronised(tmp_path, browser)
     report = _report(tmp_path, [_split_scene("split", 48, 64), _split_scene("other", 48, 64, seed=1)])
     page = Page(browser, report)
     assert page.wait_ready() == "ok 13"
-    embedded_reference = _decode(_data_uris(report.read_text())[3])   # after the plot, noisy and ours
+    embedded_reference = _decode(_data_uris(report.read_text())[3])  # after the plot, noisy and ours
     page.js("document.getElementById('group-0').scrollIntoView()")
-    box = page.js("(() => { const r = document.querySelector('#group-0 .fig:last-child img').getBoundingClientRect();"
-                  " return [r.left, r.top, r.width, r.height]; })()")
+    box = page.js(
+        "(() => { const r = document.querySelector('#group-0 .fig:last-child img').getBoundingClientRect();"
+        " return [r.left, r.top, r.width, r.height]; })()"
+    )
     left, top, width, height = box
 
-    def point(px: int, py: int) -> tuple[float, float]:   # screen position of source pixel (px, py)
+    def point(px: int, py: int) -> tuple[float, float]:  # screen position of source pixel (px, py)
         return left + (px + 0.5) * width / 64, top + (py + 0.5) * height / 48
 
     state = """(() => Array.from(document.querySelectorAll('#group-GROUP canvas.zoom')).map(c => {
@@ -338,27 +373,31 @@ def test_zoom_follows_hover_pins_on_click_and_is_synchronised(tmp_path, browser)
         return [c.hidden, Number(c.dataset.x), Number(c.dataset.y), p[0], p[1], p[2]]; }))()"""
     assert all(hidden for hidden, *_ in page.js(state.replace("GROUP", "0")))
 
-    page.mouse("mouseMoved", *point(10, 20))              # hover on the red half
+    page.mouse("mouseMoved", *point(10, 20))  # hover on the red half
     hovered = page.js(state.replace("GROUP", "0"))
-    assert len(hovered) == 5                               # noisy, ours, reference, 2 heat maps
+    assert len(hovered) == 5  # noisy, ours, reference, 2 heat maps
     assert [c[:3] for c in hovered] == [[False, 10, 20]] * 5
     ours, reference = hovered[1], hovered[2]
     assert reference[3:] == embedded_reference[20, 10].tolist() and reference[3] == 230 and reference[5] == 0
     assert ours[3] > 200 and ours[5] < 30
     assert page.js("document.querySelector('#group-0 .marker').hidden") is False
 
-    page.click(*point(50, 5))                              # pin on the blue half
-    page.mouse("mouseMoved", *point(3, 3))                 # moving away keeps the pinned region
+    page.click(*point(50, 5))  # pin on the blue half
+    page.mouse("mouseMoved", *point(3, 3))  # moving away keeps the pinned region
     pinned = page.js(state.replace("GROUP", "0"))
     assert [c[:3] for c in pinned] == [[False, 50, 5]] * 5
     assert pinned[2][3:] == embedded_reference[5, 50].tolist() and pinned[2][5] == 230
-    assert all(hidden for hidden, *_ in page.js(state.replace("GROUP", "1")))   # other scenes untouched
+    assert all(hidden for hidden, *_ in page.js(state.replace("GROUP", "1")))  # other scenes untouched
 
     page.js("const s = document.getElementById('zoom-level'); s.value = '32'; s.dispatchEvent(new Event('change'))")
-    marker = page.js("(() => { const m = document.querySelector('#group-0 .marker').style; return [m.width, m.height]; })()")
-    assert [float(m.rstrip("%")) for m in marker] == pytest.approx([100 * 5 / 64, 100 * 5 / 48], abs=1e-3)  # 160 px / 32x
+    marker = page.js(
+        "(() => { const m = document.querySelector('#group-0 .marker').style; return [m.width, m.height]; })()"
+    )
+    assert [float(m.rstrip("%")) for m in marker] == pytest.approx(
+        [100 * 5 / 64, 100 * 5 / 48], abs=1e-3
+    )  # 160 px / 32x
 
-    page.click(*point(50, 5))                              # unpin: hover takes over again
+    page.click(*point(50, 5))  # unpin: hover takes over again
     page.mouse("mouseMoved", *point(40, 30))
     unpinned = page.js(state.replace("GROUP", "0"))
     assert [c[:3] for c in unpinned] == [[False, 40, 30]] * 5
@@ -371,8 +410,10 @@ def test_harness_catches_page_errors_and_undecodable_images(tmp_path, browser):
     """The checks above can fail: a thrown error, a console.error and a broken image are all seen."""
     report = _report(tmp_path, [_split_scene("s", 8, 8)])
     broken = report.read_text().replace(
-        "</body>", '<img src="data:image/png;base64,bm90IGEgcG5n"><script>console.error("boom");'
-                   "undefinedFunction();</script></body>")
+        "</body>",
+        '<img src="data:image/png;base64,bm90IGEgcG5n"><script>console.error("boom");'
+        "undefinedFunction();</script></body>",
+    )
     bad = report.with_name("broken.html")
     bad.write_text(broken)
     page = Page(browser, bad)
@@ -385,11 +426,25 @@ def test_harness_catches_page_errors_and_undecodable_images(tmp_path, browser):
 
 def test_a_run_without_chromium_names_the_skipped_browser_tests_in_one_line(tmp_path):
     """`make test` on a machine without Chromium passes, and says which tests it did not run and why."""
-    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                          f"{__file__}::test_report_loads_decodes_every_image_without_errors_or_network",
-                          f"{__file__}::test_harness_catches_page_errors_and_undecodable_images"],
-                         env=dict(os.environ, PATH=str(tmp_path)), capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            f"{__file__}::test_report_loads_decodes_every_image_without_errors_or_network",
+            f"{__file__}::test_harness_catches_page_errors_and_undecodable_images",
+        ],
+        env=dict(os.environ, PATH=str(tmp_path)),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stdout + out.stderr
-    assert ("skipped 2 (test_report_loads_decodes_every_image_without_errors_or_network, "
-            "test_harness_catches_page_errors_and_undecodable_images): the browser tests need Chromium "
-            "(apt-get install -y chromium, as .ci/run does)") in out.stdout.splitlines(), out.stdout
+    assert (
+        "skipped 2 (test_report_loads_decodes_every_image_without_errors_or_network, "
+        "test_harness_catches_page_errors_and_undecodable_images): the browser tests need Chromium "
+        "(apt-get install -y chromium, as .ci/run does)"
+    ) in out.stdout.splitlines(), out.stdout

@@ -1,4 +1,5 @@
 """The full-image denoiser: exact tiling, transform plumbing, branch selection, hostile inputs (CPU)."""
+
 import numpy as np
 import pytest
 import torch
@@ -7,7 +8,15 @@ from torch import nn
 from admc.common.buffers import MISSING_DEPTH
 from admc.model.inference.denoiser import LOG_MAX, FullImageDenoiser
 from admc.model.inference.options import DenoiserOptions
-from admc.model.inference.tiling import CPU_TILE, GPU_TILE, OPENVINO_TILE, axis_windows, default_tile, receptive_radius, run_tiled
+from admc.model.inference.tiling import (
+    CPU_TILE,
+    GPU_TILE,
+    OPENVINO_TILE,
+    axis_windows,
+    default_tile,
+    receptive_radius,
+    run_tiled,
+)
 from admc.model.nets.generator import Generator, light_within, scaled_kaiming_
 from admc.model.nets.settings import ModelSettings
 from admc.model.transforms import EPS, diffuse_forward, specular_forward
@@ -22,7 +31,7 @@ the network's ~10 layers on O(1) log values, stays well under 1e-5 in the log do
 # inputs and its output to bf16, ~2u of that layer's output magnitude, and the 0.7-Kaiming test nets
 # do not amplify errors, so after the D convs of a generator's chain (D = its receptive radius: every
 # conv is 3x3) the output is within 2 * D * u of its magnitude.
-BF16_U = 2.0 ** -8
+BF16_U = 2.0**-8
 
 
 def log_tolerance(dtype: torch.dtype, magnitude: float) -> float:
@@ -132,7 +141,7 @@ def test_darkness_gate_keeps_tiles_equal_and_far_pixels_zero():
         untiled = g(x, f)
         tiled = run_tiled(g, x, f, tile=32, halo=radius)
     near = torch.zeros(70, 90, dtype=torch.bool)
-    near[30 - radius:34 + radius, 40 - radius:43 + radius] = True
+    near[30 - radius : 34 + radius, 40 - radius : 43 + radius] = True
     assert float(untiled[..., ~near].abs().max()) == 0.0
     assert bool((untiled[..., near] != 0).any())  # the check can fail: light nearby is denoised
     assert (tiled - untiled).abs().max().item() <= 1e-5 * untiled.abs().max().item()
@@ -151,7 +160,7 @@ def test_light_within_is_a_square_window_around_every_lit_pixel(height, width, r
     expected = torch.zeros(2, 1, height, width, dtype=torch.bool)
     for y in range(height):
         for x in range(width):
-            window = lit[:, max(y - radius, 0):y + radius + 1, max(x - radius, 0):x + radius + 1]
+            window = lit[:, max(y - radius, 0) : y + radius + 1, max(x - radius, 0) : x + radius + 1]
             expected[:, 0, y, x] = window.flatten(1).any(dim=1)
     assert torch.equal(light_within(noisy, radius), expected)
     assert torch.equal(light_within(noisy.contiguous(memory_format=torch.channels_last), radius), expected)
@@ -203,10 +212,11 @@ def test_environment_pixels_keep_their_input(inference_dtype):
     is denoised."""
     layers = render_layers(20, 24)
     layers["coverage"][:, :8] = 0.0
-    layers["diffuse"][:, :4] = 0.7   # a lit environment: kept, not hidden
+    layers["diffuse"][:, :4] = 0.7  # a lit environment: kept, not hidden
     layers["diffuse"][:, 4:8] = 0.0  # a black one: stays black
-    result = FullImageDenoiser(strong_generator(5, scale=0.7), strong_generator(6, scale=0.7),
-                               DenoiserOptions(dtype=inference_dtype))(layers)
+    result = FullImageDenoiser(
+        strong_generator(5, scale=0.7), strong_generator(6, scale=0.7), DenoiserOptions(dtype=inference_dtype)
+    )(layers)
     # kept pixels never pass through the networks, in either precision: the log value is stored in float32
     # (relative error 2^-24); expm1 scales that by d e^d / (e^d - 1), under 6 for every log value here
     # (d < 5.5), so the radiance comes back within 4e-7
@@ -226,7 +236,9 @@ def test_overlap_below_the_receptive_radius_is_refused():
 def test_pass_through_network_returns_the_input_radiance(inference_dtype):
     layers = render_layers(37, 23)
     layers["diffuse"][0, 0] = 5000.0  # bright, still within the FP16-safe range
-    result = FullImageDenoiser(PassThrough(), PassThrough(), DenoiserOptions(tile=16, overlap=0, dtype=inference_dtype))(layers)
+    result = FullImageDenoiser(
+        PassThrough(), PassThrough(), DenoiserOptions(tile=16, overlap=0, dtype=inference_dtype)
+    )(layers)
     # a copy is no conv: autocast leaves it in float32, and the log transform round trips in float32
     np.testing.assert_allclose(result.diffuse, layers["diffuse"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(result.specular, layers["specular"], rtol=1e-5, atol=1e-6)
@@ -256,7 +268,7 @@ def test_specular_without_a_specular_network_is_passed_through_and_said(inferenc
 
 def hostile_layers(height, width):
     layers = render_layers(height, width, seed=5)
-    layers["diffuse"][0, 0] = 1e6                         # firefly beyond FP16
+    layers["diffuse"][0, 0] = 1e6  # firefly beyond FP16
     layers["diffuse"][-1, -1, 1] = np.nan
     layers["specular"][height // 2, width // 2] = np.inf
     layers["albedo"][0, -1] = -0.5
@@ -292,15 +304,18 @@ def test_outputs_are_finite_on_degenerate_scenes(case, inference_dtype):
     else:
         layers["coverage"][:] = 0.0
         layers["depth"][:] = 0.0
-    result = FullImageDenoiser(strong_generator(2), strong_generator(3), DenoiserOptions(tile=16, dtype=inference_dtype))(layers)
+    result = FullImageDenoiser(
+        strong_generator(2), strong_generator(3), DenoiserOptions(tile=16, dtype=inference_dtype)
+    )(layers)
     assert np.isfinite(result.image).all() and (result.image >= 0).all()
     assert result.sanitized == {}
 
 
 def test_missing_depth_and_coverage_become_the_environment_depth():
     layers = render_layers(16, 16, specular=False)
-    complete = dict(layers, depth=np.full((16, 16, 1), MISSING_DEPTH, np.float32),
-                    coverage=np.ones((16, 16, 1), np.float32))
+    complete = dict(
+        layers, depth=np.full((16, 16, 1), MISSING_DEPTH, np.float32), coverage=np.ones((16, 16, 1), np.float32)
+    )
     del layers["depth"], layers["coverage"]
     denoiser = FullImageDenoiser(strong_generator(4), None)
     np.testing.assert_array_equal(denoiser(layers).image, denoiser(complete).image)
@@ -321,8 +336,6 @@ def test_denoiser_follows_the_evaluation_interface():
     image = denoiser.denoise(render_layers(8, 8, specular=False))
     denoiser.synchronize()
     assert image.shape == (8, 8, 3) and image.dtype == np.float32
-
-
 
 
 def test_bfloat16_autocast_stays_close_to_float32():
@@ -373,8 +386,11 @@ class FeatureEcho(nn.Module):
 def with_variance(layers, seed=3):
     rng = np.random.default_rng(seed)
     height, width = layers["diffuse"].shape[:2]
-    return {**layers, "diffuse_var": rng.random((height, width, 3), dtype=np.float32) * 0.1,
-            "specular_var": rng.random((height, width, 3), dtype=np.float32) * 0.1}
+    return {
+        **layers,
+        "diffuse_var": rng.random((height, width, 3), dtype=np.float32) * 0.1,
+        "specular_var": rng.random((height, width, 3), dtype=np.float32) * 0.1,
+    }
 
 
 @pytest.mark.parametrize("normalize_exposure", [False, True])
@@ -383,8 +399,10 @@ def test_noise_input_weights_read_each_branchs_variance_as_its_noise_map(normali
 
     layers = with_variance(render_layers(12, 10))
     if normalize_exposure:  # a dim image: the networks see the radiance times a gain, its variance times gain^2
-        layers = {k: v * (1e-3 if k in ("diffuse", "specular") else 1e-6 if k.endswith("_var") else 1)
-                  for k, v in layers.items()}
+        layers = {
+            k: v * (1e-3 if k in ("diffuse", "specular") else 1e-6 if k.endswith("_var") else 1)
+            for k, v in layers.items()
+        }
     diffuse, specular = FeatureEcho(noise_input=True), FeatureEcho(noise_input=True)
     denoiser = FullImageDenoiser(diffuse, specular, DenoiserOptions(overlap=0, normalize_exposure=normalize_exposure))
     gain = np.float32(denoiser(layers).exposure_gain)
@@ -453,9 +471,10 @@ def test_noise_input_weights_tile_and_run_the_dark_pass_and_ensemble_like_the_wh
         tiled = FullImageDenoiser(*generators, DenoiserOptions(tile=16, dtype=inference_dtype, **options))(layers)
         assert tiled.tiles > 1 == whole.tiles
         albedo = layers["albedo"]
-        for a, b, branch in ((diffuse_forward(tiled.diffuse, albedo), diffuse_forward(whole.diffuse, albedo),
-                              "diffuse"), (specular_forward(tiled.specular), specular_forward(whole.specular),
-                                           "specular")):
+        for a, b, branch in (
+            (diffuse_forward(tiled.diffuse, albedo), diffuse_forward(whole.diffuse, albedo), "diffuse"),
+            (specular_forward(tiled.specular), specular_forward(whole.specular), "specular"),
+        ):
             assert b.max() < LOG_MAX[branch] - 0.1  # nothing clamped
             assert np.abs(a - b).max() <= log_tolerance(inference_dtype, float(np.abs(b).max()))
         assert whole.dark_share > 0 if options.get("dark_pass") else whole.dark_share == 0
@@ -476,8 +495,9 @@ class NonFiniteAt(nn.Module):
 
 def test_non_finite_network_outputs_are_counted_and_set_to_zero():
     layers = render_layers(8, 10, seed=6)
-    result = FullImageDenoiser(NonFiniteAt(), NonFiniteAt(), DenoiserOptions(overlap=0, dtype=torch.float32,
-                               normalize_exposure=False))(layers)
+    result = FullImageDenoiser(
+        NonFiniteAt(), NonFiniteAt(), DenoiserOptions(overlap=0, dtype=torch.float32, normalize_exposure=False)
+    )(layers)
     assert result.nonfinite_outputs == 6 and np.isfinite(result.image).all()
     assert result.diffuse[1, 1, 0] == 0 and result.specular[2, 3, 1] == 0  # log 0 -> 0 radiance
     assert result.specular[4, 5, 2] == 0
@@ -489,6 +509,7 @@ def test_an_oidn_blend_mixes_each_branch_with_oidns_own_output_at_its_share():
     whose output already starts from OIDN's, takes no blend."""
     from admc.model.inference.denoiser import sanitize_layers
     from admc.model.inference.oidn_base import oidn_bases
+
     layers = render_layers(40, 48, seed=5)
     diffuse, specular = strong_generator(1), strong_generator(2)
     plain = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=torch.float32))(layers)

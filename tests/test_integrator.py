@@ -1,4 +1,5 @@
 """The admc_split integrator against Mitsuba's own `path` integrator, with real renders of tiny scenes."""
+
 import numpy as np
 import pytest
 
@@ -23,15 +24,25 @@ def _mixed_scene(mi):
     """Diffuse walls, rough plastic and rough conductor boxes, a glass ball and a tilted mirror."""
     T = mi.ScalarTransform4f
     scene = _cornell(mi)
-    scene["plastic"] = {"type": "roughplastic", "alpha": 0.1,
-                        "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.3, 0.6]}}
+    scene["plastic"] = {
+        "type": "roughplastic",
+        "alpha": 0.1,
+        "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.3, 0.6]},
+    }
     scene["metal"] = {"type": "roughconductor", "material": "Au", "alpha": 0.2}
     scene["large-box"]["bsdf"] = {"type": "ref", "id": "plastic"}
     scene["small-box"]["bsdf"] = {"type": "ref", "id": "metal"}
-    scene["glass-ball"] = {"type": "sphere", "center": [0.45, 0.25, 0.35], "radius": 0.22,
-                           "bsdf": {"type": "dielectric"}}
-    scene["mirror"] = {"type": "rectangle", "bsdf": {"type": "conductor"},
-                       "to_world": T().translate([0, 0.1, -0.95]).rotate([0, 1, 0], 25).scale([0.5, 0.5, 1])}
+    scene["glass-ball"] = {
+        "type": "sphere",
+        "center": [0.45, 0.25, 0.35],
+        "radius": 0.22,
+        "bsdf": {"type": "dielectric"},
+    }
+    scene["mirror"] = {
+        "type": "rectangle",
+        "bsdf": {"type": "conductor"},
+        "to_world": T().translate([0, 0.1, -0.95]).rotate([0, 1, 0], 25).scale([0.5, 0.5, 1]),
+    }
     return mi.load_dict(scene)
 
 
@@ -39,19 +50,32 @@ def _glass_behind_mirror_scene(mi, wall_reflectance, mirror_reflectance):
     """Orthographic camera looking down -z at a 45-degree mirror that sends every ray along +x,
     through a glass slab, onto a diffuse wall at x = 5: each straight-through camera path is 10 long."""
     T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "orthographic", "film": dict(BOX_FILM),
-                   "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])},
-        "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "mirror": {"type": "rectangle", "bsdf": {"type": "conductor", "specular_reflectance": mirror_reflectance},
-                   "to_world": T().rotate([0, 1, 0], 45).scale(2.0)},
-        "slab": {"type": "cube", "bsdf": {"type": "dielectric"},
-                 "to_world": T().translate([3, 0, 0]).scale([0.25, 3, 3])},
-        "wall": {"type": "rectangle",
-                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": wall_reflectance}},
-                 "to_world": T().translate([5, 0, 0]).rotate([0, 1, 0], -90).scale(6.0)},
-    })
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "orthographic",
+                "film": dict(BOX_FILM),
+                "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+            },
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+            "mirror": {
+                "type": "rectangle",
+                "bsdf": {"type": "conductor", "specular_reflectance": mirror_reflectance},
+                "to_world": T().rotate([0, 1, 0], 45).scale(2.0),
+            },
+            "slab": {
+                "type": "cube",
+                "bsdf": {"type": "dielectric"},
+                "to_world": T().translate([3, 0, 0]).scale([0.25, 3, 3]),
+            },
+            "wall": {
+                "type": "rectangle",
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": wall_reflectance}},
+                "to_world": T().translate([5, 0, 0]).rotate([0, 1, 0], -90).scale(6.0),
+            },
+        }
+    )
 
 
 def _srgb_to_xyz_matrix(mi):
@@ -135,13 +159,18 @@ def test_albedo_of_rough_conductor_matches_monte_carlo(variant):
 
     T = mi.ScalarTransform4f
     bsdf_desc = {"type": "roughconductor", "material": "Au", "alpha": 0.3}
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "orthographic", "film": dict(BOX_FILM),
-                   "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])},
-        "env": {"type": "constant"},
-        "plane": {"type": "rectangle", "bsdf": bsdf_desc, "to_world": T().scale(2.0)},
-    })
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "orthographic",
+                "film": dict(BOX_FILM),
+                "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
+            },
+            "env": {"type": "constant"},
+            "plane": {"type": "rectangle", "bsdf": bsdf_desc, "to_world": T().scale(2.0)},
+        }
+    )
     buf = render_buffers(scene, 32, seed=3)
     albedo = buf["albedo"].reshape(-1, 3).mean(axis=0)
 
@@ -172,20 +201,32 @@ def test_albedo_of_rough_plastic_is_its_diffuse_reflectance_in_every_sample(vari
 
     T = mi.ScalarTransform4f
     reflectance = [0.2, 0.3, 0.6]
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "orthographic", "film": dict(BOX_FILM),
-                   "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0])},
-        "env": {"type": "constant"},
-        "plane": {"type": "rectangle", "to_world": T().scale(2.0),
-                  "bsdf": {"type": "twosided", "bsdf": {
-                      "type": "roughplastic", "alpha": 0.3,
-                      "diffuse_reflectance": {"type": "rgb", "value": reflectance}}}},
-    })
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "orthographic",
+                "film": dict(BOX_FILM),
+                "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
+            },
+            "env": {"type": "constant"},
+            "plane": {
+                "type": "rectangle",
+                "to_world": T().scale(2.0),
+                "bsdf": {
+                    "type": "twosided",
+                    "bsdf": {
+                        "type": "roughplastic",
+                        "alpha": 0.3,
+                        "diffuse_reflectance": {"type": "rgb", "value": reflectance},
+                    },
+                },
+            },
+        }
+    )
     buf = render_buffers(scene, 2, seed=3)
     assert (buf["coverage"] == 1).all()
-    np.testing.assert_allclose(buf["albedo"].reshape(-1, 3), np.broadcast_to(reflectance, (SIZE * SIZE, 3)),
-                               rtol=1e-6)
+    np.testing.assert_allclose(buf["albedo"].reshape(-1, 3), np.broadcast_to(reflectance, (SIZE * SIZE, 3)), rtol=1e-6)
     assert buf["specular"].max() > 0  # the glossy lobe was sampled: the old sample-weight albedo varied here
 
 
@@ -238,13 +279,19 @@ def test_depth_and_normals_finite_where_only_environment_is_seen(variant):
     import mitsuba as mi
 
     T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40, "film": dict(BOX_FILM),
-                   "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0])},
-        "env": {"type": "constant"},
-        "ball": {"type": "sphere", "radius": 0.5, "bsdf": {"type": "roughplastic"}},
-    })
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "perspective",
+                "fov": 40,
+                "film": dict(BOX_FILM),
+                "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+            },
+            "env": {"type": "constant"},
+            "ball": {"type": "sphere", "radius": 0.5, "bsdf": {"type": "roughplastic"}},
+        }
+    )
     buf = render_buffers(scene, 4, seed=0)
     for name, array in buf.items():
         assert np.isfinite(array).all(), name
@@ -266,8 +313,7 @@ def test_same_seed_is_bit_identical_and_other_seeds_differ(variant):
     first = render_buffers(scene, 4, seed=21)
     again = render_buffers(scene, 4, seed=21)
     other = render_buffers(scene, 4, seed=22)
-    assert set(first) == {"diffuse", "specular", "albedo", "normal", "depth", "coverage",
-                          "diffuse_var", "specular_var"}
+    assert set(first) == {"diffuse", "specular", "albedo", "normal", "depth", "coverage", "diffuse_var", "specular_var"}
     for name in first:
         assert first[name].dtype == np.float32 and first[name].shape[:2] == (SIZE, SIZE)
         np.testing.assert_array_equal(first[name], again[name], err_msg=name)
@@ -313,7 +359,14 @@ def test_variants_are_only_those_the_integrator_accepts_and_llvm_is_found():
     for name in ("scalar_rgb", "llvm_ad_spectral"):
         with pytest.raises(VariantError, match=f"render.variant '{name}': the split integrator runs only in"):
             resolve_variant(name)
-    assert [_llvm_major(p) for p in ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1",
-                                     "/usr/lib/llvm-19/lib/libLLVM.so.1", "/opt/libLLVM-18.so")] == [19, 15, 19, 18]
+    assert [
+        _llvm_major(p)
+        for p in (
+            "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1",
+            "/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1",
+            "/usr/lib/llvm-19/lib/libLLVM.so.1",
+            "/opt/libLLVM-18.so",
+        )
+    ] == [19, 15, 19, 18]
     library = find_llvm()  # setup installs libllvm19; the system's 15 crashes Mitsuba and must never be picked
     assert library is not None and _llvm_major(library) >= 16

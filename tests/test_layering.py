@@ -1,6 +1,7 @@
 """Imports flow one way (docs/architecture.md): cli -> pipeline -> model -> stores -> admc/common and
 admc/errors.py, and inside pipeline/ and model/ from the upper layers to the lower ones. Read from the
 source, imports inside functions included: a lazy import upward is still a layer upside down."""
+
 import ast
 import tomllib
 from collections import Counter
@@ -9,12 +10,22 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 LAYERS = [  # (module prefix, layer): the longest matching prefix decides; higher layers may import lower ones
-    ("admc", 0), ("admc.common", 0), ("admc.errors", 0),
+    ("admc", 0),
+    ("admc.common", 0),
+    ("admc.errors", 0),
     ("admc.stores", 1),
-    ("admc.model", 2), ("admc.model.nets", 3), ("admc.model.training", 4), ("admc.model.inference", 4),
-    ("admc.pipeline", 5), ("admc.pipeline.scene_names", 5), ("admc.pipeline.config", 6),
-    ("admc.pipeline.engine", 7), ("admc.pipeline.render", 8),
-    ("admc.pipeline.tiler", 9), ("admc.pipeline.evaluation", 9), ("admc.pipeline.weights", 9),
+    ("admc.model", 2),
+    ("admc.model.nets", 3),
+    ("admc.model.training", 4),
+    ("admc.model.inference", 4),
+    ("admc.pipeline", 5),
+    ("admc.pipeline.scene_names", 5),
+    ("admc.pipeline.config", 6),
+    ("admc.pipeline.engine", 7),
+    ("admc.pipeline.render", 8),
+    ("admc.pipeline.tiler", 9),
+    ("admc.pipeline.evaluation", 9),
+    ("admc.pipeline.weights", 9),
     ("admc.pipeline.stages", 10),
     ("admc.cli", 11),
 ]
@@ -23,8 +34,9 @@ APART = [("admc.model.training", "admc.model.inference")]
 
 
 def layer_of(module: str) -> tuple[str, int]:
-    prefix, layer = max(((p, n) for p, n in LAYERS if module == p or module.startswith(p + ".")),
-                        key=lambda item: len(item[0]))
+    prefix, layer = max(
+        ((p, n) for p, n in LAYERS if module == p or module.startswith(p + ".")), key=lambda item: len(item[0])
+    )
     return prefix, layer
 
 
@@ -47,8 +59,11 @@ def imported(module: str, path: Path) -> set[str]:
         if isinstance(node, ast.Import):
             names |= {alias.name for alias in node.names}
         elif isinstance(node, ast.ImportFrom):
-            base = ".".join(package[:len(package) - node.level + 1] + [node.module or ""]).strip(".") \
-                if node.level else node.module
+            base = (
+                ".".join(package[: len(package) - node.level + 1] + [node.module or ""]).strip(".")
+                if node.level
+                else node.module
+            )
             names.add(base)
             names |= {f"{base}.{alias.name}" for alias in node.names}  # `from pkg import module`
     return {name for name in names if name == "admc" or name.startswith("admc.")}

@@ -1,4 +1,5 @@
 """Generator L1 (+ display SSIM) + adversarial loss, WGAN-GP critic loss and the float32 gradient penalty."""
+
 import numpy as np
 import pytest
 import torch
@@ -106,8 +107,9 @@ def test_a_smaller_l1_floor_weighs_an_error_in_a_dark_pixel_more():
     real = torch.stack([dark, bright]).reshape(1, 1, 1, 2)
     error = torch.tensor([0.05, 0.0]).reshape(1, 1, 1, 2), torch.tensor([0.0, 0.05]).reshape(1, 1, 1, 2)
     for floor, dark_over_bright in ((1.0, (0.99, 1.01)), (0.1, (5, 15))):  # 0.1: 7.1 in exact arithmetic
-        (on_dark, _), (on_bright, _) = (generator_loss(real + e, real, None, adversarial=False, l1_floor=floor)
-                                        for e in error)
+        (on_dark, _), (on_bright, _) = (
+            generator_loss(real + e, real, None, adversarial=False, l1_floor=floor) for e in error
+        )
         lo, hi = dark_over_bright
         assert lo <= on_dark.item() / on_bright.item() <= hi
 
@@ -132,7 +134,9 @@ def test_the_display_ssim_term_weighs_a_darkened_shadow_like_a_darkened_grey_the
     Table 1's 1-SSIM, sees the two alike (SSIM compares relative changes; its constants damp the darkest)."""
     shadow, grey = _textured(3e-4), _textured(0.2)
     darker = [torch.log1p(torch.expm1(x) * 0.8) for x in (shadow, grey)]
-    (l1_shadow, _), (l1_grey, _) = (generator_loss(d, x, None, adversarial=False) for d, x in zip(darker, (shadow, grey)))
+    (l1_shadow, _), (l1_grey, _) = (
+        generator_loss(d, x, None, adversarial=False) for d, x in zip(darker, (shadow, grey))
+    )
     ssim_shadow, ssim_grey = (display_ssim_loss(d, x) for d, x in zip(darker, (shadow, grey)))
     assert l1_shadow < l1_grey / 100
     assert ssim_grey / 2 < ssim_shadow < ssim_grey * 2
@@ -155,7 +159,9 @@ def test_the_linear_scale_is_what_the_ssim_term_compares():
     real, fake = _textured(0.5, seed=1), _textured(0.5, seed=2)
     albedo = torch.rand(real.shape, generator=torch.Generator().manual_seed(3))
     remodulated = [torch.log1p(torch.expm1(x) * albedo) for x in (fake, real)]
-    assert display_ssim_loss(fake, real, albedo).item() == pytest.approx(display_ssim_loss(*remodulated).item(), rel=1e-5)
+    assert display_ssim_loss(fake, real, albedo).item() == pytest.approx(
+        display_ssim_loss(*remodulated).item(), rel=1e-5
+    )
     assert display_ssim_loss(fake, real, albedo).item() != pytest.approx(display_ssim_loss(fake, real).item(), rel=1e-2)
 
 

@@ -1,4 +1,5 @@
 """Metrics: cross-checked against scikit-image, hand-computed cases, odd sizes and non-finite input."""
+
 import math
 
 import flip_evaluator
@@ -25,8 +26,9 @@ def _from_levels(levels) -> np.ndarray:
 def test_ssim_and_psnr_match_scikit_image(shape):
     x, ref = _pair(shape, seed=sum(shape))
     a, b = metrics.to_ldr(x), metrics.to_ldr(ref)
-    expected_ssim = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                          channel_axis=-1, data_range=255)
+    expected_ssim = structural_similarity(
+        a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, channel_axis=-1, data_range=255
+    )
     assert metrics.ssim(x, ref) == pytest.approx(expected_ssim, abs=1e-6)
     assert metrics.psnr(x, ref) == pytest.approx(peak_signal_noise_ratio(b, a, data_range=255), abs=1e-6)
     assert 0.0 < metrics.ssim(x, ref) < 0.99
@@ -52,7 +54,7 @@ def test_to_ldr_clips_gamma_encodes_and_quantises():
 def test_psnr_hand_computed_and_capped():
     ref = _from_levels(np.full((8, 8, 3), 100))
     x = _from_levels(np.full((8, 8, 3), 101))
-    assert metrics.psnr(x, ref) == pytest.approx(10 * math.log10(255 ** 2 / 1.0), abs=1e-9)
+    assert metrics.psnr(x, ref) == pytest.approx(10 * math.log10(255**2 / 1.0), abs=1e-9)
     assert metrics.psnr(ref, ref) == metrics.PSNR_CAP_DB == 100.0
     assert metrics.ssim(ref, ref) == pytest.approx(1.0)
 
@@ -73,8 +75,12 @@ def test_odd_sizes_give_finite_scores(shape):
     assert all(math.isfinite(v) for v in scores.values())
     assert 0.0 < scores["one_minus_ssim"] < 2.0
     assert 0.0 < scores["hdr_flip"] < 1.0
-    assert metrics.score(ref, ref) == {"one_minus_ssim": pytest.approx(0.0, abs=1e-12), "psnr": 100.0, "relmse": 0.0,
-                                       "hdr_flip": 0.0}
+    assert metrics.score(ref, ref) == {
+        "one_minus_ssim": pytest.approx(0.0, abs=1e-12),
+        "psnr": 100.0,
+        "relmse": 0.0,
+        "hdr_flip": 0.0,
+    }
 
 
 def test_nonfinite_values_score_as_zero_and_are_counted():
@@ -151,19 +157,22 @@ def _batch(seed=0, shape=(9, 7, 3)):
     pairs = [_pair(shape, seed=seed + i) for i in range(3)]
     x = np.stack([p[0] for p in pairs]).astype(np.float64)
     ref = np.stack([p[1] for p in pairs]).astype(np.float64)
-    x[0, :2] *= 40.0                # beyond 1: clipped by the tone map, not by relMSE
-    x[1] = ref[1]                   # identical: PSNR capped, relMSE 0
-    x[2, 4, 3, 1] = np.nan          # the non-finite rule applies on both sides
+    x[0, :2] *= 40.0  # beyond 1: clipped by the tone map, not by relMSE
+    x[1] = ref[1]  # identical: PSNR capped, relMSE 0
+    x[2, 4, 3, 1] = np.nan  # the non-finite rule applies on both sides
     return x, ref
 
 
 def test_torch_metrics_equal_numpy_ones_per_sample():
     """Validation (torch, per sample) and evaluation (NumPy, per image) compute the same numbers."""
     import torch
+
     x, ref = _batch()
     tx, tref = torch.from_numpy(x).permute(0, 3, 1, 2), torch.from_numpy(ref).permute(0, 3, 1, 2)
-    np.testing.assert_array_equal(metrics.to_ldr_torch(tx).permute(0, 2, 3, 1).numpy(),
-                                  np.stack([metrics.to_ldr(v) for v in x]).astype(np.float64))
+    np.testing.assert_array_equal(
+        metrics.to_ldr_torch(tx).permute(0, 2, 3, 1).numpy(),
+        np.stack([metrics.to_ldr(v) for v in x]).astype(np.float64),
+    )
     relmse, psnr = metrics.relmse_torch(tx, tref).tolist(), metrics.psnr_torch(tx, tref).tolist()
     for i in range(len(x)):
         # float64 on both sides; only the summation order differs
@@ -174,6 +183,7 @@ def test_torch_metrics_equal_numpy_ones_per_sample():
 
 def test_torch_ssim_equals_the_numpy_one_per_sample():
     import torch
+
     x, ref = _batch(shape=(17, 13, 3))
     tx, tref = torch.from_numpy(x).permute(0, 3, 1, 2), torch.from_numpy(ref).permute(0, 3, 1, 2)
     ssim_error = metrics.one_minus_ssim_torch(tx, tref).tolist()
@@ -186,5 +196,8 @@ def test_torch_ssim_equals_the_numpy_one_per_sample():
 def test_reinhard_compresses_highlights_before_the_tone_map():
     x = np.array([[[0.0, 1.0, 3.0], [-2.0, np.inf, np.nan]]])
     assert metrics.reinhard(x).tolist() == [[[0.0, 0.5, 0.75], [0.0, 0.0, 0.0]]]
-    assert metrics.to_ldr(metrics.reinhard(x))[0, 0].tolist() == [0, round(255 * 0.5 ** (1 / 2.2)),
-                                                                   round(255 * 0.75 ** (1 / 2.2))]
+    assert metrics.to_ldr(metrics.reinhard(x))[0, 0].tolist() == [
+        0,
+        round(255 * 0.5 ** (1 / 2.2)),
+        round(255 * 0.75 ** (1 / 2.2)),
+    ]

@@ -8,10 +8,11 @@ unmapped memory, and the next signal with a Python handler (torch's DataLoader i
 killed the process. The check runs in a fresh interpreter, so that a crash fails this test instead of
 ending the session.
 """
+
 import subprocess
 import sys
 
-SCRIPT = r'''
+SCRIPT = r"""
 import ctypes, faulthandler, os, signal, subprocess, sys, traceback
 
 import numpy as np
@@ -84,13 +85,14 @@ except BaseException:  # fail at once: a process left in this state may hang on 
     sys.stderr.flush()
     os._exit(1)
 print("survived", flush=True)
-'''
+"""
 
 
 def test_oidn_openvino_onnxruntime_flip_mitsuba_and_torch_in_one_process():
     out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0 and out.stdout.strip().endswith("survived"), (
-        f"exit {out.returncode}\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}")
+        f"exit {out.returncode}\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}"
+    )
 
 
 def test_every_openvino_generator_shares_one_core():

@@ -1,4 +1,5 @@
 """The denoiser (EncoderNet + CFM generator, every ablation mode) and the VGG-128 critic, on CPU."""
+
 import pytest
 import torch
 
@@ -175,8 +176,15 @@ def test_input_skip_starts_at_the_identity():
 WIDEN_ATOL = 1e-11
 
 
-@pytest.mark.parametrize("mode, backbone, base", [("cfm", "residual", "noisy"), ("concat", "residual", "noisy"),
-                                                  ("cfm", "unet", "noisy"), ("shift", "residual", "oidn")])
+@pytest.mark.parametrize(
+    "mode, backbone, base",
+    [
+        ("cfm", "residual", "noisy"),
+        ("concat", "residual", "noisy"),
+        ("cfm", "unet", "noisy"),
+        ("shift", "residual", "oidn"),
+    ],
+)
 def test_weights_without_the_noise_input_widen_to_the_same_function(mode, backbone, base):
     """Fine-tuning older weights into model.noise_input: zero weights on the new channel, and the
     widened generator computes what the saved one did, whatever the noise map holds."""
@@ -204,8 +212,9 @@ def test_weights_without_the_noise_input_widen_to_the_same_function(mode, backbo
         wide(noisy, feats, base_image)
 
 
-@pytest.mark.parametrize("name", ["admc-small-pretrained.pt", "admc-small-refiner.pt", "admc-small-refiner-fast.pt",
-                                  "admc-small-unet.pt"])
+@pytest.mark.parametrize(
+    "name", ["admc-small-pretrained.pt", "admc-small-refiner.pt", "admc-small-refiner-fast.pt", "admc-small-unet.pt"]
+)
 def test_finetuning_the_shipped_weights_into_the_noise_input_starts_exactly_at_them(name):
     """What `admc-pipe train --stage finetune --set model.noise_input=true` starts from (resume.load_init):
     the shipped tensors bit for bit, zeros on the noise channel, and the same outputs at step 0."""
@@ -301,8 +310,10 @@ def _slim_pair(cfm_per_block: int, condition_layers: int, encoder_nonnegative: b
     slim = Generator(ModelSettings(**TINY, cfm_per_block=cfm_per_block, condition_layers=condition_layers)).double()
     if encoder_nonnegative:
         slim.encoder.layers.append(torch.nn.ReLU())
-    batch = {"noisy": torch.rand(2, 3, 24, 24, dtype=torch.float64),
-             "features": torch.rand(2, 7, 24, 24, dtype=torch.float64)}
+    batch = {
+        "noisy": torch.rand(2, 3, 24, 24, dtype=torch.float64),
+        "features": torch.rand(2, 7, 24, 24, dtype=torch.float64),
+    }
     slim_generator(full, slim, batch, seed=0)
     return full, slim, batch
 
@@ -312,8 +323,9 @@ def test_slimming_recovers_a_network_the_slim_one_can_compute_exactly():
     compute the same function."""
     full, slim, batch = _slim_pair(cfm_per_block=2, condition_layers=1, encoder_nonnegative=True)
     with torch.no_grad():
-        torch.testing.assert_close(slim(batch["noisy"], batch["features"]), full(batch["noisy"], batch["features"]),
-                                   rtol=0, atol=SLIM_ATOL)
+        torch.testing.assert_close(
+            slim(batch["noisy"], batch["features"]), full(batch["noisy"], batch["features"]), rtol=0, atol=SLIM_ATOL
+        )
 
 
 def test_slimming_a_block_refits_its_second_conv_to_the_full_blocks_output():

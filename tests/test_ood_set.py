@@ -1,5 +1,6 @@
 """The out-of-family set: a held-out family made of constructs no training family contains, drawn
 with its own seed, apart from every training corpus and from the default test set."""
+
 from pathlib import Path
 
 import pytest
@@ -24,8 +25,10 @@ def test_the_ood_split_is_twelve_held_out_scenes_leading_with_every_construct_in
     specs = eval_scenes(load_config(None, OOD))
     assert len(specs) == 12 and {spec.family for spec in specs} == {"ood"}
     assert all(not spec.constructs for spec in specs)
-    leads = {(OOD_NAMES[(spec.seed % 1_000_000 // len(LAYOUTS)) % len(OOD_NAMES)], LAYOUTS[spec.seed % len(LAYOUTS)])
-             for spec in specs}
+    leads = {
+        (OOD_NAMES[(spec.seed % 1_000_000 // len(LAYOUTS)) % len(OOD_NAMES)], LAYOUTS[spec.seed % len(LAYOUTS)])
+        for spec in specs
+    }
     assert leads == {(name, layout) for name in OOD_NAMES for layout in LAYOUTS}
 
 

@@ -1,5 +1,6 @@
 """A plain (non-editable) install carries the shipped weights: the wheel lists them, and the installed
 package's weights finder returns them, so `admc-pipe denoise` works from any install."""
+
 import json
 import os
 import shutil
@@ -29,37 +30,63 @@ def _source_copy(dest: Path) -> Path:
 def _package_files(source: Path) -> set[str]:
     """Every file of the package folders of `source` (modules and package data), as the wheel names it."""
     folders = tomllib.loads((source / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
-    return {f"{package.replace('.', '/')}/{path.relative_to(source / folder).as_posix()}"
-            for package, folder in folders.items() for path in (source / folder).rglob("*")
-            if path.is_file() and "__pycache__" not in path.parts}
+    return {
+        f"{package.replace('.', '/')}/{path.relative_to(source / folder).as_posix()}"
+        for package, folder in folders.items()
+        for path in (source / folder).rglob("*")
+        if path.is_file() and "__pycache__" not in path.parts
+    }
 
 
 @pytest.mark.slow
 def test_a_wheel_ships_the_weights_and_its_install_finds_them(tmp_path):
     source = _source_copy(tmp_path / "src")
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-                    "--wheel-dir", str(tmp_path / "dist"), str(source)], check=True, capture_output=True)
-    wheel, = (tmp_path / "dist").glob("admc-*.whl")
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--wheel-dir",
+            str(tmp_path / "dist"),
+            str(source),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    (wheel,) = (tmp_path / "dist").glob("admc-*.whl")
     shipped = [entry["file"] for entry in json.loads((REPO / "weights" / "manifest.json").read_text())["weights"]]
     listed = set(zipfile.ZipFile(wheel).namelist())
     assert {f"admc/weights/{name}" for name in ["manifest.json", *shipped]} <= listed
     # every module (the packages are found by setup.py, not listed by hand) and every data file: configs,
     # weights, the report's templates
     assert _package_files(source) - listed == set()
-    assert {"admc/configs/default.toml", "admc/pipeline/evaluation/templates/report.html",
-            "admc/pipeline/render/scenes/families.py"} <= listed
+    assert {
+        "admc/configs/default.toml",
+        "admc/pipeline/evaluation/templates/report.html",
+        "admc/pipeline/render/scenes/families.py",
+    } <= listed
 
     site = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--target", str(site),
-                    str(wheel)], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--target", str(site), str(wheel)],
+        check=True,
+        capture_output=True,
+    )
     # The installed copy comes first on the path (before this checkout's editable install); its
     # dependencies (torch, ...) still come from this environment.
-    probe = ("import admc; from admc.pipeline.config import load_config; "
-             "from admc.pipeline.weights import WEIGHTS_DIR, shipped_weights; "
-             "print(admc.__file__); print(WEIGHTS_DIR); print(shipped_weights(load_config().model))")
+    probe = (
+        "import admc; from admc.pipeline.config import load_config; "
+        "from admc.pipeline.weights import WEIGHTS_DIR, shipped_weights; "
+        "print(admc.__file__); print(WEIGHTS_DIR); print(shipped_weights(load_config().model))"
+    )
     env = {**os.environ, "PYTHONPATH": str(site)}
-    out = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=env, check=True, capture_output=True,
-                         text=True).stdout.split("\n")
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, env=env, check=True, capture_output=True, text=True
+    ).stdout.split("\n")
     package, weights_dir, default = (Path(line) for line in out[:3])
     assert package.is_relative_to(site) and weights_dir == site / "admc" / "weights"
     assert default == weights_dir / "admc-small-pretrained.pt" and default.is_file()

@@ -1,4 +1,5 @@
 """Patch store on real Zarr v3 directories: round trips, refusals, parallel writers, atomicity."""
+
 import concurrent.futures
 import hashlib
 import multiprocessing
@@ -42,8 +43,11 @@ def synthetic_scene(seed: int, crops: int = 3, spp_levels=(1, 4), specular: bool
 
 
 def scene_attrs(name: str) -> dict:
-    return {"scene_hash": f"hash-{name}", "image_size": [384, 128],
-            "sanitization": {"diffuse": {"nan": 2, "posinf": 1}}}
+    return {
+        "scene_hash": f"hash-{name}",
+        "image_size": [384, 128],
+        "sanitization": {"diffuse": {"nan": 2, "posinf": 1}},
+    }
 
 
 def write_synthetic(path: str, split: str, scene_id: str, seed: int, specular: bool = True) -> str:
@@ -105,8 +109,14 @@ def test_attributes_suffice_to_invert_transforms(store):
     depth = rng.uniform(1, 9, (PATCH, PATCH, 1)).astype(np.float32)
     feats16, _ = T.to_fp16(T.features(normal, depth, albedo, np.ones_like(depth)))
     chw = lambda x: np.moveaxis(x, -1, 0)[None]  # noqa: E731
-    arrays = {"noisy_diffuse": chw(noisy16), "features": chw(feats16), "ref_diffuse": chw(noisy16),
-              "spp": np.array([8]), "crop": np.array([0]), "origin": np.array([[0, 0]])}
+    arrays = {
+        "noisy_diffuse": chw(noisy16),
+        "features": chw(feats16),
+        "ref_diffuse": chw(noisy16),
+        "spp": np.array([8]),
+        "crop": np.array([0]),
+        "origin": np.array([[0, 0]]),
+    }
     P.write_scene(store, "val", "one", arrays, {**scene_attrs("one"), "sanitization": {"diffuse": counts}})
 
     reader = P.PatchReader(store, "val")
@@ -119,7 +129,7 @@ def test_attributes_suffice_to_invert_transforms(store):
     # half an FP16 ulp on the stored log value (through expm1) plus the stored albedo's FP16 rounding
     half_ulp = np.spacing(np.abs(item["noisy"]).astype(np.float16)).astype(np.float64) / 2
     amp = stored_albedo + spec["eps"]
-    tol = (expected + amp) * np.expm1(half_ulp) * (1 + 2.0 ** -11) + expected * 2.0 ** -11 + 1e-6
+    tol = (expected + amp) * np.expm1(half_ulp) * (1 + 2.0**-11) + expected * 2.0**-11 + 1e-6
     assert (np.abs(back - expected) <= tol).all()
     assert P.store_summary(store)["sanitization"]["diffuse"]["nan"] == 1
 
@@ -174,8 +184,11 @@ def test_two_processes_write_concurrently(store):
 
 
 def file_states(root: str) -> dict[str, tuple[int, str]]:
-    return {str(p.relative_to(root)): (p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
-            for p in Path(root).rglob("*") if p.is_file()}
+    return {
+        str(p.relative_to(root)): (p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+        for p in Path(root).rglob("*")
+        if p.is_file()
+    }
 
 
 def test_adding_a_scene_rewrites_nothing_else(store):
@@ -274,6 +287,7 @@ def test_reading_one_patch_reads_one_chunk(store):
 
 def test_reader_pickles_for_worker_processes(store):
     import pickle
+
     write_synthetic(store, "train", "a", 1)
     reader = P.PatchReader(store, "train")
     reader[0]
@@ -304,10 +318,16 @@ def test_a_store_of_an_older_format_is_refused_with_what_to_do(tmp_path):
     P.create_store(path, ROOT_ATTRS)
     assert P.exists(path) and P.FORMAT_VERSION == 2
     zarr.open_group(store=LocalStore(path), mode="r+").attrs["format_version"] = 1
-    for opening in (lambda: P.PatchReader(path, "train"), lambda: P.fingerprint(path),
-                    lambda: P.create_store(path, ROOT_ATTRS)):
-        with pytest.raises(P.PatchStoreError, match=r"format_version 1, this code reads 2; written by an older "
-                                                    r"admc: move it away .* run `admc-pipe dataset`"):
+    for opening in (
+        lambda: P.PatchReader(path, "train"),
+        lambda: P.fingerprint(path),
+        lambda: P.create_store(path, ROOT_ATTRS),
+    ):
+        with pytest.raises(
+            P.PatchStoreError,
+            match=r"format_version 1, this code reads 2; written by an older "
+            r"admc: move it away .* run `admc-pipe dataset`",
+        ):
             opening()
 
 
@@ -320,7 +340,10 @@ def test_noise_maps_come_per_branch_and_join_the_features_only_when_asked(store)
     P.write_scene(store, "train", "noisy-a", with_noise, scene_attrs("noisy-a"))
     assert P.has_noise_maps(store, "train", "noisy-a")
     for branch in ("diffuse", "specular"):
-        plain, read = P.PatchReader(store, "train", branch=branch), P.PatchReader(store, "train", branch=branch, noise=True)
+        plain, read = (
+            P.PatchReader(store, "train", branch=branch),
+            P.PatchReader(store, "train", branch=branch, noise=True),
+        )
         assert plain[1]["features"].shape == (7, PATCH, PATCH)
         assert read[1]["features"].shape == (8, PATCH, PATCH)
         np.testing.assert_array_equal(read[1]["features"][:7], plain[1]["features"])
@@ -342,7 +365,10 @@ def test_a_store_without_noise_maps_is_refused_for_noise_input_naming_it_and_wha
     assert n > 0 and not P.has_noise_maps(store, "train", "older")
     attrs = zarr.open_group(store=LocalStore(Path(store) / "train" / "older"), mode="r").attrs
     assert "has_noise" not in attrs  # a scene without them has the attributes it always had
-    with pytest.raises(P.PatchStoreError, match=rf"patch store {store}: scene train/older has no noise maps.*"
-                                                r"run `admc-pipe dataset` with this config and --set "
-                                                r"model.noise_input=true"):
+    with pytest.raises(
+        P.PatchStoreError,
+        match=rf"patch store {store}: scene train/older has no noise maps.*"
+        r"run `admc-pipe dataset` with this config and --set "
+        r"model.noise_input=true",
+    ):
         P.PatchReader(store, "train", noise=True)

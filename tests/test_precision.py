@@ -1,4 +1,5 @@
 """Precision resolution: auto follows the CPU's own bf16 hardware, explicit names are kept, bad ones refused."""
+
 from pathlib import Path
 
 import pytest

@@ -1,6 +1,7 @@
 """Scene files as people publish them: the camera and lights in a shared <include>, `$spp` and
 `$resx`/`$resy` taken from `mitsuba -D`, and a scene without any light. Tiny real scenes, rendered
 for real (32x32, 4 spp), through the library and the CLI as a user runs it."""
+
 import os
 import subprocess
 import sys
@@ -44,11 +45,11 @@ def setup_file(shape: str) -> str:
 
 SHAPES = {
     "sphere": '<shape type="sphere"><point name="center" x="0" y="0.5" z="0"/><float name="radius" value="0.5"/>'
-              '<bsdf type="roughplastic"/></shape>',
+    '<bsdf type="roughplastic"/></shape>',
     "cube": '<shape type="cube"><transform name="to_world"><scale value="0.4"/><translate y="0.4"/></transform>'
-            '<bsdf type="diffuse"><rgb name="reflectance" value="0.2, 0.6, 0.3"/></bsdf></shape>',
+    '<bsdf type="diffuse"><rgb name="reflectance" value="0.2, 0.6, 0.3"/></bsdf></shape>',
     "disk": '<shape type="disk"><transform name="to_world"><translate y="0.3"/></transform>'
-            '<bsdf type="conductor"/></shape>',
+    '<bsdf type="conductor"/></shape>',
 }
 UNLIT = COMMON.replace('<emitter type="constant"><rgb name="radiance" value="0.8"/></emitter>', SHAPES["cube"])
 """A whole scene, camera included, with no light at all."""
@@ -105,22 +106,32 @@ def test_a_scene_taking_spp_and_film_size_parameters_without_defaults_loads_with
 
 def test_an_undefined_parameter_is_named_with_its_file(tmp_path):
     folder = published_folder(tmp_path / "published")
-    (folder / "glass.xml").write_text(setup_file(SHAPES["sphere"].replace(
-        '<bsdf type="roughplastic"/>', '<bsdf type="dielectric"><float name="int_ior" value="$ior"/></bsdf>')))
+    (folder / "glass.xml").write_text(
+        setup_file(
+            SHAPES["sphere"].replace(
+                '<bsdf type="roughplastic"/>', '<bsdf type="dielectric"><float name="int_ior" value="$ior"/></bsdf>'
+            )
+        )
+    )
     left_out: list[SceneError] = []
     specs = xml_corpus([str(folder)], (32, 32), left_out)
     assert "xml-glass" not in [spec.scene_id for spec in specs] and len(specs) == 3
     (error,) = [error for error in left_out if not isinstance(error, NotAScene)]
-    assert str(error) == (f"{folder / 'glass.xml'}: $ior is used but has no <default> "
-                          "(admc passes only $spp, $resx, $resy, as `mitsuba -D` would)")
+    assert str(error) == (
+        f"{folder / 'glass.xml'}: $ior is used but has no <default> "
+        "(admc passes only $spp, $resx, $resy, as `mitsuba -D` would)"
+    )
 
 
 def test_a_scene_without_any_emitter_is_refused_by_name(tmp_path):
     folder = tmp_path / "scenes"
     folder.mkdir()
     (folder / "unlit.xml").write_text(UNLIT)
-    with pytest.raises(SceneError, match=r"unlit\.xml: no <emitter> \(no light, no environment\) in it or in the "
-                                         r"files it includes: it would render black"):
+    with pytest.raises(
+        SceneError,
+        match=r"unlit\.xml: no <emitter> \(no light, no environment\) in it or in the "
+        r"files it includes: it would render black",
+    ):
         xml_corpus([str(folder)], (32, 32))
     area = SHAPES["cube"].replace("</shape>", '<emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>')
     (folder / "unlit.xml").write_text(UNLIT.replace("</scene>", area + "</scene>"))
@@ -134,9 +145,22 @@ def test_the_cli_renders_a_published_folder_and_names_every_file_it_left_out(tmp
     unlit = folder / "unlit.xml"
     unlit.write_text(UNLIT)
     work = tmp_path / "work"
-    flags = ["--set", f"run.workdir='{work}'", "--set", "run.scheduler=sync", "--set", "render.resolution=[32, 32]",
-             "--set", "render.spp=[4]", "--set", "render.reference_spp=8", "--set", "corpus.n_scenes=0",
-             "--set", f"corpus.xml_dirs=['{folder}']"]
+    flags = [
+        "--set",
+        f"run.workdir='{work}'",
+        "--set",
+        "run.scheduler=sync",
+        "--set",
+        "render.resolution=[32, 32]",
+        "--set",
+        "render.spp=[4]",
+        "--set",
+        "render.reference_spp=8",
+        "--set",
+        "corpus.n_scenes=0",
+        "--set",
+        f"corpus.xml_dirs=['{folder}']",
+    ]
     wide = dict(os.environ, COLUMNS="1000")  # one line per file, however long its path
     out = subprocess.run([ADMC, "render", *flags], capture_output=True, text=True, timeout=600, env=wide)
     assert out.returncode == 2, out.stdout + out.stderr
@@ -154,10 +178,14 @@ def test_the_cli_renders_a_published_folder_and_names_every_file_it_left_out(tmp
 
 
 def test_includes_that_form_a_cycle_are_named(tmp_path):
-    (tmp_path / "a.xml").write_text('<scene version="3.0.0"><include filename="b.xml"/><sensor type="perspective"/>'
-                                    '<emitter type="constant"/></scene>')
+    (tmp_path / "a.xml").write_text(
+        '<scene version="3.0.0"><include filename="b.xml"/><sensor type="perspective"/>'
+        '<emitter type="constant"/></scene>'
+    )
     (tmp_path / "b.xml").write_text('<scene version="3.0.0"><include filename="a.xml"/></scene>')
     left_out: list[SceneError] = []
     assert xml_corpus([str(tmp_path)], (32, 32), left_out) == []
-    assert list(map(str, left_out)) == [f"{tmp_path / 'a.xml'}: its includes form a cycle (a.xml -> b.xml -> a.xml)",
-                                        f"{tmp_path / 'b.xml'}: its includes form a cycle (b.xml -> a.xml -> b.xml)"]
+    assert list(map(str, left_out)) == [
+        f"{tmp_path / 'a.xml'}: its includes form a cycle (a.xml -> b.xml -> a.xml)",
+        f"{tmp_path / 'b.xml'}: its includes form a cycle (b.xml -> a.xml -> b.xml)",
+    ]

@@ -2,6 +2,7 @@
 
 Real OIDN (pyoidn), real renders, a real patch store and real training steps at tiny sizes.
 """
+
 import dataclasses
 
 import numpy as np
@@ -67,9 +68,12 @@ def test_config_refuses_a_refiner_without_stored_bases(tmp_path):
         load_config(None, [f"run.workdir='{tmp_path}'", "model.base='oidn'", "tile.oidn_base=false"])
     with pytest.raises(ConfigError, match="model.base"):
         load_config(None, [f"run.workdir='{tmp_path}'", "model.base='median'"])
-    with pytest.raises(ConfigError, match=r"tile.refiner_base': is 'oidn-fast', but model.base = 'oidn' trains on the "
-                                          r"bases of 'oidn' \(OIDN 'high'; the store's: diffuse high, specular fast\): "
-                                          r"set model.base = 'oidn-fast'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"tile.refiner_base': is 'oidn-fast', but model.base = 'oidn' trains on the "
+        r"bases of 'oidn' \(OIDN 'high'; the store's: diffuse high, specular fast\): "
+        r"set model.base = 'oidn-fast'",
+    ):
         load_config(None, [f"run.workdir='{tmp_path}'", "model.base='oidn'", "tile.refiner_base='oidn-fast'"])
     with pytest.raises(ConfigError, match="tile.refiner_base': must be one of oidn, oidn-fast, got 'best'"):
         load_config(None, [f"run.workdir='{tmp_path}'", "tile.refiner_base='best'"])
@@ -93,10 +97,12 @@ def test_tiling_stores_oidn_of_the_whole_image_per_row(store_with_bases):
     assert group.attrs["base"]["quality"] == BASE_QUALITIES[base]
     y, x = (int(v) for v in group["origin"][row])
     spp = item["spp"]
-    layers = {name: sanitize(a, name)[0]
-              for name, a in exr.read_exr(cfg.workdir_path("renders") / scene / f"spp{spp:04d}.exr").items()
-              if name in ("diffuse", "specular", "albedo", "normal")}
-    expected = tf.diffuse_forward(oidn_bases(layers, base)["diffuse"], layers["albedo"])[y:y + 32, x:x + 32]
+    layers = {
+        name: sanitize(a, name)[0]
+        for name, a in exr.read_exr(cfg.workdir_path("renders") / scene / f"spp{spp:04d}.exr").items()
+        if name in ("diffuse", "specular", "albedo", "normal")
+    }
+    expected = tf.diffuse_forward(oidn_bases(layers, base)["diffuse"], layers["albedo"])[y : y + 32, x : x + 32]
     # stored as float16: 2^-11 relative rounding of log values
     np.testing.assert_allclose(item["base"], expected.transpose(2, 0, 1), rtol=2**-10, atol=1e-6)
 
@@ -115,9 +121,12 @@ def test_bases_of_another_quality_are_refused_per_branch_naming_the_scene_and_th
     other = next(base for base in BASE_QUALITIES if base != cfg.tile.refiner_base)
     assert len(PatchReader(store, "train", branch="diffuse", base=other)) > 0
     stored, needed = BASE_QUALITIES[cfg.tile.refiner_base]["specular"], BASE_QUALITIES[other]["specular"]
-    with pytest.raises(PatchStoreError, match=rf"scene train/\S+ holds specular OIDN bases of quality '{stored}', "
-                                              rf"model.base '{other}' trains on '{needed}' ones; tile with "
-                                              rf"tile.refiner_base = '{other}'"):
+    with pytest.raises(
+        PatchStoreError,
+        match=rf"scene train/\S+ holds specular OIDN bases of quality '{stored}', "
+        rf"model.base '{other}' trains on '{needed}' ones; tile with "
+        rf"tile.refiner_base = '{other}'",
+    ):
         PatchReader(store, "train", branch="specular", base=other)
 
 
@@ -134,8 +143,17 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
     model, settings = preset("default")
     base = cfg.tile.refiner_base
     model = dataclasses.replace(model, **TINY, critic_channels=4, base=base)
-    settings = dataclasses.replace(settings, steps=4, l1_warmup_steps=2, critic_only_steps=1, val_every=2,
-                                   val_patches=2, checkpoint_every=2, log_every=1, head_tail_start_step=0)
+    settings = dataclasses.replace(
+        settings,
+        steps=4,
+        l1_warmup_steps=2,
+        critic_only_steps=1,
+        val_every=2,
+        val_patches=2,
+        checkpoint_every=2,
+        log_every=1,
+        head_tail_start_step=0,
+    )
     result = train(store, tmp_path / "run", settings, model, progress=False)
     assert result.validation["diffuse"]["base_relmse"] > 0  # OIDN's own score: what the run must beat
     from admc.model.inference.denoiser import load_denoiser
@@ -147,7 +165,9 @@ def test_a_refiner_trains_selects_and_denoises_as_oidn_plus_a_correction(store_w
     out = denoiser(layers)
     assert out.image.shape == layers["diffuse"].shape and np.isfinite(out.image).all()
     assert out.base_seconds > 0
-    dark = load_denoiser(result.weights, DenoiserOptions(dark_pass=True))(layers)  # OIDN runs again at the second exposure
+    dark = load_denoiser(result.weights, DenoiserOptions(dark_pass=True))(
+        layers
+    )  # OIDN runs again at the second exposure
     assert np.isfinite(dark.image).all() and (dark.dark_share == 0) == np.array_equal(dark.image, out.image)
 
 
@@ -156,14 +176,17 @@ def store_scene(store):
 
 
 @pytest.mark.parametrize("base", sorted(BASE_QUALITIES))
-def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn_at_its_quality(store_with_bases, inference_dtype,
-                                                                                   base):
+def test_an_untrained_refiner_denoises_exactly_like_per_branch_oidn_at_its_quality(
+    store_with_bases, inference_dtype, base
+):
     cfg, store = store_with_bases
     specular_scene = PatchReader(store, "train", branch="specular").scenes[0]
     layers = exr.read_exr(cfg.workdir_path("renders") / specular_scene / "spp0004.exr")
     layers["coverage"] = np.ones_like(layers["coverage"])  # every pixel goes through the network
     branches = {b: refiner(base=base) for b in ("diffuse", "specular")}
-    out = FullImageDenoiser(branches["diffuse"], branches["specular"], DenoiserOptions(tile=24, dtype=inference_dtype))(layers)
+    out = FullImageDenoiser(branches["diffuse"], branches["specular"], DenoiserOptions(tile=24, dtype=inference_dtype))(
+        layers
+    )
     clean = {name: sanitize(layers[name], name)[0] for name in ("diffuse", "specular", "albedo", "normal")}
     bases = oidn_bases(clean, base)
     # the untrained correction is exactly zero in either precision (its last conv starts at zero) and

@@ -1,4 +1,5 @@
 """The render stage end to end: a tiny corpus through the cache and runner into EXRs and sidecars."""
+
 import json
 import os
 import signal
@@ -18,8 +19,15 @@ ADMC = str(Path(sys.executable).parent / "admc-pipe")
 
 
 def tiny(workdir, *extra):
-    return [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]",
-            "render.spp=[2, 4]", "render.reference_spp=16", "corpus.families=['room']", *extra]
+    return [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        "render.resolution=[32, 32]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=16",
+        "corpus.families=['room']",
+        *extra,
+    ]
 
 
 def test_tiny_corpus_renders_every_layer_and_reruns_nothing(tmp_path, variant):
@@ -45,10 +53,10 @@ def test_tiny_corpus_renders_every_layer_and_reruns_nothing(tmp_path, variant):
 
 
 def test_killed_render_resumes_with_only_unfinished_tasks(tmp_path, variant):
-    args = [item for s in tiny(tmp_path, "corpus.n_scenes=3", "render.reference_spp=4096")
-            for item in ("--set", s)]
-    proc = subprocess.Popen([ADMC, "render", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    args = [item for s in tiny(tmp_path, "corpus.n_scenes=3", "render.reference_spp=4096") for item in ("--set", s)]
+    proc = subprocess.Popen(
+        [ADMC, "render", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+    )
     cache = open_cache(load_config(None, tiny(tmp_path, "corpus.n_scenes=3", "render.reference_spp=4096")))
     deadline = time.time() + 240
     while time.time() < deadline and len(cache.entries()) < 2:
@@ -85,7 +93,7 @@ def test_normals_are_in_view_space(variant):
     box["sensor"]["film"].update({"width": 32, "height": 32, "rfilter": {"type": "box"}})
     scene = mi.load_dict(box)
     normal = view_space_normals(integrator.render_buffers(scene, 4, 1)["normal"], scene)
-    np.testing.assert_allclose(normal[16, 1], [1, 0, 0], atol=1e-3)    # red wall on the left faces right
+    np.testing.assert_allclose(normal[16, 1], [1, 0, 0], atol=1e-3)  # red wall on the left faces right
     np.testing.assert_allclose(normal[16, 30], [-1, 0, 0], atol=1e-3)  # green wall on the right faces left
-    np.testing.assert_allclose(normal[1, 16], [0, -1, 0], atol=1e-3)   # ceiling faces down
+    np.testing.assert_allclose(normal[1, 16], [0, -1, 0], atol=1e-3)  # ceiling faces down
     assert normal[..., 2].min() > -1e-3, "visible surfaces face the viewer (+z)"

@@ -2,6 +2,7 @@
 outputs (rendered here by Mitsuba), pbrt-v4 gbuffer films (pbrt cannot run in a test: files with the exact
 channel names and header attributes its film.cpp and image.cpp write, filled from a Mitsuba render), and any
 file through --layers; normals end up in admc's camera frame or the file is refused."""
+
 import json
 import subprocess
 from pathlib import Path
@@ -24,8 +25,9 @@ def in_blender(script: str, *args: str) -> str:
     command = blender_command()
     if command is None:
         pytest.skip("no Blender (bash scripts/setup.sh --blender installs .venv-blender)")
-    out = subprocess.run([*command, str(HERE / "blender" / script), "--", *args], capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [*command, str(HERE / "blender" / script), "--", *args], capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     return out.stdout
 
@@ -48,15 +50,19 @@ def mitsuba_aov(tmp_path_factory, variant):
     folder = tmp_path_factory.mktemp("mitsuba")
     scene_dict = mi.cornell_box()
     scene_dict["sensor"]["film"] = {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}}
-    scene_dict["integrator"] = {"type": "aov", "aovs": "dd.y:depth,nn:sh_normal,albedo:albedo,pos:position",
-                                "image": {"type": "path"}}
+    scene_dict["integrator"] = {
+        "type": "aov",
+        "aovs": "dd.y:depth,nn:sh_normal,albedo:albedo,pos:position",
+        "image": {"type": "path"},
+    }
     scene = mi.load_dict(scene_dict)
     mi.render(scene, spp=4)
     path = folder / "cbox.exr"
     scene.sensors()[0].film().write(str(path))
     channels = OpenEXR.File(str(path), separate_channels=True).channels()
-    world = {name: np.stack([channels[f"{name}.{c}"].pixels for c in "XYZ"], -1).astype(np.float32)
-             for name in ("nn", "pos")}
+    world = {
+        name: np.stack([channels[f"{name}.{c}"].pixels for c in "XYZ"], -1).astype(np.float32) for name in ("nn", "pos")
+    }
     to_world = np.array(scene.sensors()[0].world_transform().matrix, np.float64).reshape(4, 4)
     expected = view_space_normals(world["nn"], scene)  # what admc's own renders hold for these normals
     return path, world, to_world, expected, channels
@@ -85,8 +91,11 @@ def test_blender_multilayer_splits_and_brings_normals_into_admcs_camera(blender_
     # Without the Denoising Normal, the world-space Normal pass needs the camera, and then agrees with it.
     without = {k: v for k, v in planes.items() if "Denoising Normal" not in k}
     OpenEXR.File(dict(HEADER), without).write(str(tmp_path / "world.exr"))
-    with pytest.raises(NormalSpaceError, match=r"world\.exr: the normals \(Shot\.Normal\.X.* world space .*"
-                                               r"--world-to-camera .*matrix_world\.inverted"):
+    with pytest.raises(
+        NormalSpaceError,
+        match=r"world\.exr: the normals \(Shot\.Normal\.X.* world space .*"
+        r"--world-to-camera .*matrix_world\.inverted",
+    ):
         load_denoise_input(tmp_path / "world.exr")
     rotated = load_denoise_input(tmp_path / "world.exr", LayerMap.parse(None, "auto", " ".join(map(str, matrix))))
     inside = hit & np.all(np.linalg.norm(loaded.layers["normal"], axis=-1, keepdims=True) > 0.99, axis=-1)
@@ -98,9 +107,13 @@ def test_blender_output_is_a_layer_blenders_compositor_reads(blender_shot, tmp_p
 
     path, matrix = blender_shot
     loaded = load_denoise_input(path)
-    result = DenoiseResult(image=loaded.layers["diffuse"] + loaded.layers["specular"], diffuse=loaded.layers["diffuse"],
-                           specular=loaded.layers["specular"], branches=("diffuse", "specular"),
-                           specular_passed_through=False)
+    result = DenoiseResult(
+        image=loaded.layers["diffuse"] + loaded.layers["specular"],
+        diffuse=loaded.layers["diffuse"],
+        specular=loaded.layers["specular"],
+        branches=("diffuse", "specular"),
+        specular_passed_through=False,
+    )
     out = tmp_path / "shot.denoised.exr"
     write_denoised(out, result, source=loaded)
     layout = json.loads(in_blender("read_layout.py", str(out)).split("LAYOUT ")[1].splitlines()[0])
@@ -157,16 +170,24 @@ def pbrt_file(path, channels, world, to_world, system: str, old_names: bool = Fa
         position = position @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
         normal = normal @ camera_from_world[:3, :3].T
     rgb = {c: channels[c].pixels for c in "RGB"}
-    names = {"P": ("Px", "Py", "Pz"), "N": ("Nx", "Ny", "Nz"), "Ns": ("Nsx", "Nsy", "Nsz")} if old_names else {
-        k: tuple(f"{k}.{c}" for c in "XYZ") for k in ("P", "N", "Ns")}
-    planes = {**rgb, **{f"Albedo.{c}": channels[f"albedo.{c}"].pixels for c in "RGB"},
-              **{f"Variance.{c}": np.full_like(rgb["R"], 0.5) for c in "RGB"},
-              **{f"RelativeVariance.{c}": np.zeros_like(rgb["R"]) for c in "RGB"},
-              "dzdx": np.zeros_like(rgb["R"]), "dzdy": np.zeros_like(rgb["R"]), "u": rgb["R"] * 0, "v": rgb["R"] * 0}
+    names = (
+        {"P": ("Px", "Py", "Pz"), "N": ("Nx", "Ny", "Nz"), "Ns": ("Nsx", "Nsy", "Nsz")}
+        if old_names
+        else {k: tuple(f"{k}.{c}" for c in "XYZ") for k in ("P", "N", "Ns")}
+    )
+    planes = {
+        **rgb,
+        **{f"Albedo.{c}": channels[f"albedo.{c}"].pixels for c in "RGB"},
+        **{f"Variance.{c}": np.full_like(rgb["R"], 0.5) for c in "RGB"},
+        **{f"RelativeVariance.{c}": np.zeros_like(rgb["R"]) for c in "RGB"},
+        "dzdx": np.zeros_like(rgb["R"]),
+        "dzdy": np.zeros_like(rgb["R"]),
+        "u": rgb["R"] * 0,
+        "v": rgb["R"] * 0,
+    }
     for key, array in (("P", position), ("N", normal), ("Ns", normal)):
         planes.update({name: np.ascontiguousarray(array[..., i], np.float32) for i, name in enumerate(names[key])})
-    header = dict(HEADER, worldToCamera=camera_from_world.astype(np.float32), samplesPerPixel=16,
-                  renderTimeSeconds=0.5)
+    header = dict(HEADER, worldToCamera=camera_from_world.astype(np.float32), samplesPerPixel=16, renderTimeSeconds=0.5)
     OpenEXR.File(header, planes).write(str(path))
     return camera_from_world
 
@@ -196,8 +217,9 @@ def test_layers_mapping_for_any_other_file(mitsuba_aov, tmp_path):
     with pytest.raises(DenoiseInputError, match=r"frame\.exr: read as EXR with --layers, lacks albedo needed"):
         load_denoise_input(tmp_path / "frame.exr", LayerMap.parse(["colour=beauty", "normal=N"]))
     toml = tmp_path / "layers.toml"
-    toml.write_text('normal_space = "camera"\n[layers]\ncolour = "beauty"\nalbedo = ["alb.R", "alb.G", "alb.B"]\n'
-                    'normal = "N"\n')
+    toml.write_text(
+        'normal_space = "camera"\n[layers]\ncolour = "beauty"\nalbedo = ["alb.R", "alb.G", "alb.B"]\nnormal = "N"\n'
+    )
     loaded = load_denoise_input(tmp_path / "frame.exr", LayerMap.parse([str(toml)]))
     np.testing.assert_array_equal(loaded.layers["normal"], expected)
     with pytest.raises(LayerMapError, match=r"--layers maps albedo to nothing, which the file does not hold"):
@@ -209,8 +231,11 @@ def test_layers_mapping_for_any_other_file(mitsuba_aov, tmp_path):
     turn = np.array([[-0.5, 0, 0.866], [0, 1, 0], [-0.866, 0, -0.5]], np.float32)
     planes.update({f"N.{c}": np.ascontiguousarray((world["nn"] @ turn.T)[..., i]) for i, c in enumerate("XYZ")})
     OpenEXR.File(dict(HEADER), planes).write(str(tmp_path / "world.exr"))
-    with pytest.raises(NormalSpaceError, match=r"world\.exr: the normals \(N\.X, N\.Y, N\.Z\) face away from the camera"
-                                               r" on \d+% .* --normal-space world --world-to-camera"):
+    with pytest.raises(
+        NormalSpaceError,
+        match=r"world\.exr: the normals \(N\.X, N\.Y, N\.Z\) face away from the camera"
+        r" on \d+% .* --normal-space world --world-to-camera",
+    ):
         load_denoise_input(tmp_path / "world.exr", LayerMap.parse(["colour=beauty", "albedo=alb", "normal=N"]))
 
 

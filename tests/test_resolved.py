@@ -1,6 +1,7 @@
 """Keeping what the input resolves (model/inference/resolved.py): a smeared pattern the render resolves comes
 back, a noisy input or an unbiased output is left to the network, and the denoiser applies it only with
 the variance layers."""
+
 import numpy as np
 import torch
 from torch import nn
@@ -43,8 +44,7 @@ def fireflies(seed: int, chance: float, spp: int = 4) -> tuple[np.ndarray, np.nd
     pixel's mean of `spp` samples and the variance of that mean estimated from them, as the renderer
     writes it (0 where every sample missed)."""
     samples = np.where(np.random.default_rng(seed).random((spp, SIZE, SIZE, 3)) < chance, 1.0 / chance, 0.0)
-    return (samples.mean(axis=0).astype(np.float32),
-            (samples.var(axis=0, ddof=1) / spp).astype(np.float32))
+    return (samples.mean(axis=0).astype(np.float32), (samples.var(axis=0, ddof=1) / spp).astype(np.float32))
 
 
 def test_a_low_spp_input_leaves_the_output_exactly_as_the_network_gave_it():
@@ -95,11 +95,12 @@ def test_light_bled_into_silent_pixels_beside_a_resolved_light_is_taken_back():
     assert share > 0
     assert np.abs(out[2:4]).max() < 0.05  # beside the light: back to the input's 0
     assert np.abs(out[:2] - 20.0).max() < np.abs(bled[:2] - 20.0).max()
-    np.testing.assert_array_equal(out[2 + 4:], bled[2 + 4:])  # 9x9 windows without the light: as given
+    np.testing.assert_array_equal(out[2 + 4 :], bled[2 + 4 :])  # 9x9 windows without the light: as given
 
 
 class Smear(nn.Module):
     """A real module that returns its log-domain input averaged over the image: it removes every detail."""
+
     def forward(self, noisy, features):
         return noisy.mean(dim=(2, 3), keepdim=True).expand_as(noisy).clone()
 
@@ -107,8 +108,12 @@ class Smear(nn.Module):
 def pattern_layers(variance: float | None) -> dict[str, np.ndarray]:
     truth = stripes()
     noisy, var = render(truth, variance or 1e-4, seed=3)
-    layers = {"diffuse": noisy, "albedo": np.ones_like(noisy), "normal": np.tile(np.float32([0, 0, 1]), (SIZE, SIZE, 1)),
-              "depth": np.ones((SIZE, SIZE, 1), np.float32)}
+    layers = {
+        "diffuse": noisy,
+        "albedo": np.ones_like(noisy),
+        "normal": np.tile(np.float32([0, 0, 1]), (SIZE, SIZE, 1)),
+        "depth": np.ones((SIZE, SIZE, 1), np.float32),
+    }
     if variance is not None:
         layers["diffuse_var"] = var
     return layers

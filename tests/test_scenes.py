@@ -2,6 +2,7 @@
 
 Everything renders for real with Mitsuba at 32x32 and 4 spp.
 """
+
 import os
 import pickle
 import subprocess
@@ -42,6 +43,7 @@ def luminance(image):
 
 # ------------------------------------------------------------------------------ procedural
 
+
 @pytest.mark.parametrize("family", sorted(FAMILIES))
 @pytest.mark.parametrize("seed", [1, 3])
 def test_same_seed_gives_same_hash_and_bit_identical_render(variant, family, seed):
@@ -60,10 +62,14 @@ def test_different_seeds_give_different_hashes(family):
 def test_hash_does_not_depend_on_the_process():
     """Another interpreter with another str-hash seed computes the same hashes (no set/dict-order leaks)."""
     specs = [SceneSpec(f"{family}-2", family, 2, RES) for family in sorted(FAMILIES)]
-    code = ("from admc.pipeline.render.scenes import SceneSpec, scene_hash\n"
-            f"print(' '.join(scene_hash(SceneSpec(f'{{f}}-2', f, 2, {RES!r})) for f in {sorted(FAMILIES)!r}))")
+    code = (
+        "from admc.pipeline.render.scenes import SceneSpec, scene_hash\n"
+        f"print(' '.join(scene_hash(SceneSpec(f'{{f}}-2', f, 2, {RES!r})) for f in {sorted(FAMILIES)!r}))"
+    )
     env = dict(os.environ, PYTHONHASHSEED="12345")
-    other = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
+    other = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
     assert other == [scene_hash(spec) for spec in specs]
 
 
@@ -112,7 +118,13 @@ def test_the_config_knows_the_families_and_constructs_the_scene_code_builds():
 
 def test_procedural_corpus_cycles_families_with_disjoint_seeds():
     corpus = procedural_corpus(["room", "tabletop"], 5, seed=2, resolution=(64, 48))
-    assert [spec.scene_id for spec in corpus] == ["room-2000000", "tabletop-2000000", "room-2000001", "tabletop-2000001", "room-2000002"]
+    assert [spec.scene_id for spec in corpus] == [
+        "room-2000000",
+        "tabletop-2000000",
+        "room-2000001",
+        "tabletop-2000001",
+        "room-2000002",
+    ]
     assert all(spec.resolution == (64, 48) and spec.xml_path is None for spec in corpus)
     assert pickle.loads(pickle.dumps(corpus)) == corpus
     other = procedural_corpus(["room"], 3, seed=3, resolution=(64, 48))
@@ -123,8 +135,11 @@ def test_procedural_corpus_cycles_families_with_disjoint_seeds():
 
 def test_procedural_meshes_are_small_with_normals_facing_like_their_triangles():
     rng = family_rng("test", 0)
-    meshes = [lathe(np.linspace(0.1, 0.2, 20), 0.5, [1.0, 0.0, 2.0]), bumpy_sphere(rng, 0.3, [0.0, 1.0, 0.0]),
-              heightfield(rng, (2.0, 1.5), 0.05, [0.0, 0.01, 0.0], yaw=30.0)]
+    meshes = [
+        lathe(np.linspace(0.1, 0.2, 20), 0.5, [1.0, 0.0, 2.0]),
+        bumpy_sphere(rng, 0.3, [0.0, 1.0, 0.0]),
+        heightfield(rng, (2.0, 1.5), 0.05, [0.0, 0.01, 0.0], yaw=30.0),
+    ]
     for mesh in meshes:
         assert len(mesh.faces) < 3000 and mesh.faces.max() < len(mesh.vertices)
         a, b, c = (mesh.vertices[mesh.faces[:, k]] for k in range(3))
@@ -136,25 +151,32 @@ def test_procedural_meshes_are_small_with_normals_facing_like_their_triangles():
 
 # -------------------------------------------------------------------------------- analysis
 
+
 def _needs(bsdf):
     import mitsuba as mi
 
-    return analyse(mi.load_dict({"type": "scene", "ball": {"type": "sphere", "bsdf": bsdf}, "sky": {"type": "constant"}}))
+    return analyse(
+        mi.load_dict({"type": "scene", "ball": {"type": "sphere", "bsdf": bsdf}, "sky": {"type": "constant"}})
+    )
 
 
-@pytest.mark.parametrize("bsdf, specular", [
-    ({"type": "diffuse"}, False),
-    ({"type": "roughplastic", "alpha": 0.2}, True),
-    ({"type": "roughconductor", "alpha": 0.2}, True),
-    ({"type": "conductor"}, True),
-    ({"type": "conductor", "material": "none"}, True),
-    ({"type": "dielectric"}, True),
-    ({"type": "thindielectric"}, True),
-    ({"type": "twosided", "bsdf": {"type": "diffuse"}}, False),
-    ({"type": "twosided", "bsdf": {"type": "roughconductor"}}, True),
-    ({"type": "blendbsdf", "weight": 0.3, "bsdf_0": {"type": "diffuse"}, "bsdf_1": {"type": "conductor"}}, True),
-    ({"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}, False),
-], ids=lambda value: value.get("type") if isinstance(value, dict) else str(value))
+@pytest.mark.parametrize(
+    "bsdf, specular",
+    [
+        ({"type": "diffuse"}, False),
+        ({"type": "roughplastic", "alpha": 0.2}, True),
+        ({"type": "roughconductor", "alpha": 0.2}, True),
+        ({"type": "conductor"}, True),
+        ({"type": "conductor", "material": "none"}, True),
+        ({"type": "dielectric"}, True),
+        ({"type": "thindielectric"}, True),
+        ({"type": "twosided", "bsdf": {"type": "diffuse"}}, False),
+        ({"type": "twosided", "bsdf": {"type": "roughconductor"}}, True),
+        ({"type": "blendbsdf", "weight": 0.3, "bsdf_0": {"type": "diffuse"}, "bsdf_1": {"type": "conductor"}}, True),
+        ({"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}, False),
+    ],
+    ids=lambda value: value.get("type") if isinstance(value, dict) else str(value),
+)
 def test_analyse_finds_glossy_and_delta_lobes_through_nesting(variant, bsdf, specular):
     assert _needs(bsdf).has_specular is specular
 
@@ -204,7 +226,12 @@ def write_kitchen_scene(folder):
 
 def test_xml_scene_gets_box_filtered_film_at_its_own_resolution(variant, xml_scene):
     (spec,) = xml_corpus([str(xml_scene.parent)], None)
-    assert (spec.scene_id, spec.family, spec.resolution, spec.xml_path) == ("xml-kitchen", "xml", (40, 30), str(xml_scene))
+    assert (spec.scene_id, spec.family, spec.resolution, spec.xml_path) == (
+        "xml-kitchen",
+        "xml",
+        (40, 30),
+        str(xml_scene),
+    )
     scene = load_scene(spec)
     film = scene.sensors()[0].film()
     assert film.rfilter().class_name() == "BoxFilter" and list(film.size()) == [40, 30]

@@ -1,6 +1,7 @@
 """Training ships each branch's best networks by validation, not its last, and a fine-tuning that does
 not beat its starting weights by more than the val patches' noise ships them unchanged (real tiny store,
 real training steps)."""
+
 import csv
 import dataclasses
 import math
@@ -24,10 +25,26 @@ from admc.stores.checkpoints import load_checkpoint, load_weights
 from admc.stores.patches import PatchReader, list_scenes
 
 TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4, input_skip=True)
-SETTINGS = TrainSettings(steps=6, batch_size=2, l1_warmup_steps=6, critic_only_steps=0, lr_g_diffuse=1e-4,
-                         lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=0, lr_milestones=(100,), val_every=2,
-                         val_patches=8, checkpoint_every=2, log_every=2, num_workers=0, threads=0, device="cpu",
-                         seed=3, max_bad_steps=3)
+SETTINGS = TrainSettings(
+    steps=6,
+    batch_size=2,
+    l1_warmup_steps=6,
+    critic_only_steps=0,
+    lr_g_diffuse=1e-4,
+    lr_g_specular=1e-4,
+    lr_d=1e-4,
+    head_tail_start_step=0,
+    lr_milestones=(100,),
+    val_every=2,
+    val_patches=8,
+    checkpoint_every=2,
+    log_every=2,
+    num_workers=0,
+    threads=0,
+    device="cpu",
+    seed=3,
+    max_bad_steps=3,
+)
 
 
 @pytest.fixture(scope="module")
@@ -97,8 +114,15 @@ def glaring_targets(store, tmp_path):
 def test_a_finetuning_that_only_gets_worse_ships_its_starting_weights(store, tmp_path):
     pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, val_every=0), TINY, progress=False)
     worse = dataclasses.replace(SETTINGS, lr_g_diffuse=1e-3, lr_g_specular=1e-3)
-    fine = train(glaring_targets(store, tmp_path), tmp_path / "fine", worse, TINY, stage="finetune",
-                 init_from=pre.weights, progress=False)
+    fine = train(
+        glaring_targets(store, tmp_path),
+        tmp_path / "fine",
+        worse,
+        TINY,
+        stage="finetune",
+        init_from=pre.weights,
+        progress=False,
+    )
     start, shipped = load_weights(pre.weights), load_weights(fine.weights)
     for branch in ("diffuse", "specular"):
         assert fine.selected[branch]["step"] == 0
@@ -115,11 +139,25 @@ def test_a_finetuning_that_only_gets_worse_ships_its_starting_weights(store, tmp
 def test_a_finetuning_within_the_val_noise_ships_its_starting_weights_and_says_so(store, tmp_path):
     pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, val_every=0), TINY, progress=False)
     faster = dataclasses.replace(SETTINGS, lr_g_diffuse=3e-3, lr_g_specular=3e-3, precision="float32")
-    loose = train(store, tmp_path / "loose", dataclasses.replace(faster, select_z=0.0), TINY, stage="finetune",
-                  init_from=pre.weights, progress=False)
+    loose = train(
+        store,
+        tmp_path / "loose",
+        dataclasses.replace(faster, select_z=0.0),
+        TINY,
+        stage="finetune",
+        init_from=pre.weights,
+        progress=False,
+    )
     assert loose.selected["specular"]["step"] > 0  # the premise: a step has a far lower val mean (~30% here)
-    strict = train(store, tmp_path / "strict", dataclasses.replace(faster, select_z=1e6), TINY, stage="finetune",
-                   init_from=pre.weights, progress=False)
+    strict = train(
+        store,
+        tmp_path / "strict",
+        dataclasses.replace(faster, select_z=1e6),
+        TINY,
+        stage="finetune",
+        init_from=pre.weights,
+        progress=False,
+    )
     assert strict.selected["specular"]["step"] == 0
     assert any(note.startswith("specular: step ") and "within the noise" in note for note in strict.notes)
     start, shipped = load_weights(pre.weights), load_weights(strict.weights)
@@ -160,8 +198,10 @@ def test_a_run_selecting_by_relmse_and_ssim_ships_the_step_it_names(store, tmp_p
         chosen = run.selected[branch]
         assert set(chosen) == {"step", "val_relmse_ssim"}
         # the mean over patches of (relMSE / input's mean + 1-SSIM / input's mean) / 2 is linear in the patches
-        val = {k: logged[(f"{branch}/val_{k}", chosen["step"])]
-               for k in ("relmse", "noisy_relmse", "one_minus_ssim", "noisy_one_minus_ssim")}
+        val = {
+            k: logged[(f"{branch}/val_{k}", chosen["step"])]
+            for k in ("relmse", "noisy_relmse", "one_minus_ssim", "noisy_one_minus_ssim")
+        }
         expected = (val["relmse"] / val["noisy_relmse"] + val["one_minus_ssim"] / val["noisy_one_minus_ssim"]) / 2
         assert chosen["val_relmse_ssim"] == pytest.approx(expected, rel=1e-5)
         assert {"l1", "ssim"} <= set(run.last_losses[branch])

@@ -1,5 +1,6 @@
 """run.scheduler = "slurm": the job script dask-jobqueue generates from [cluster] (no SLURM needed) and
 the errors a user sees for a missing extra or a bad [cluster] value."""
+
 from __future__ import annotations
 
 import sys
@@ -24,14 +25,32 @@ def _sbatch_lines(cfg) -> tuple[list[str], str]:
 
 
 def test_job_script_books_the_configured_resources(tmp_path):
-    cfg = _cfg(tmp_path, "cluster.cores=12", "cluster.memory='48GiB'", "cluster.gpus=2", "cluster.queue=gpu",
-               "cluster.account=render-proj", "cluster.walltime='1-02:30:00'",
-               "cluster.job_directives=['--constraint=a100', '--qos=long']")
+    cfg = _cfg(
+        tmp_path,
+        "cluster.cores=12",
+        "cluster.memory='48GiB'",
+        "cluster.gpus=2",
+        "cluster.queue=gpu",
+        "cluster.account=render-proj",
+        "cluster.walltime='1-02:30:00'",
+        "cluster.job_directives=['--constraint=a100', '--qos=long']",
+    )
     directives, worker = _sbatch_lines(cfg)
     logs = tmp_path / "slurm-logs"
-    assert directives == ["-J admc", f"-e {logs}/admc-%J.err", f"-o {logs}/admc-%J.out", "-p gpu", "-A render-proj",
-                          "-n 1", "--cpus-per-task=12", "--mem=48G", "-t 1-02:30:00", "--gres=gpu:2",
-                          "--constraint=a100", "--qos=long"]
+    assert directives == [
+        "-J admc",
+        f"-e {logs}/admc-%J.err",
+        f"-o {logs}/admc-%J.out",
+        "-p gpu",
+        "-A render-proj",
+        "-n 1",
+        "--cpus-per-task=12",
+        "--mem=48G",
+        "-t 1-02:30:00",
+        "--gres=gpu:2",
+        "--constraint=a100",
+        "--qos=long",
+    ]
     assert worker.startswith(f"{sys.executable} -m distributed.cli.dask_worker tcp://")
     assert " --nthreads 1 " in worker and "--memory-limit 48.00GiB" in worker  # one task at a time per job
 
@@ -59,12 +78,18 @@ def test_other_schedulers_pass_through(tmp_path):
         assert address == "tcp://10.0.0.5:8786"
 
 
-@pytest.mark.parametrize("override, key", [
-    ("cluster.jobs=0", "cluster.jobs"), ("cluster.cores=0", "cluster.cores"), ("cluster.gpus=-1", "cluster.gpus"),
-    ("cluster.memory='lots'", "cluster.memory"), ("cluster.walltime='4h'", "cluster.walltime"),
-    ("cluster.job_directives=['constraint=a100']", r"cluster.job_directives\[0\]"),
-    ("cluster.partition='gpu'", "cluster.partition"),
-])
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("cluster.jobs=0", "cluster.jobs"),
+        ("cluster.cores=0", "cluster.cores"),
+        ("cluster.gpus=-1", "cluster.gpus"),
+        ("cluster.memory='lots'", "cluster.memory"),
+        ("cluster.walltime='4h'", "cluster.walltime"),
+        ("cluster.job_directives=['constraint=a100']", r"cluster.job_directives\[0\]"),
+        ("cluster.partition='gpu'", "cluster.partition"),
+    ],
+)
 def test_bad_cluster_value_names_its_key(tmp_path, override, key):
     with pytest.raises(ConfigError, match=f"'{key}'"):
         _cfg(tmp_path, override)

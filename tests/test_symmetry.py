@@ -1,5 +1,6 @@
 """Test-time self-ensembling: the 8 symmetries on a batch are training's augmentation of each item, and
 an 8-way ensemble denoiser is equivariant to them, as a group average must be."""
+
 import numpy as np
 import pytest
 import torch
@@ -20,7 +21,9 @@ def test_batch_symmetries_are_each_items_augmentation_and_undo_inverts_them(code
     applied = apply(torch.from_numpy(features), code, normals=True)
     np.testing.assert_array_equal(features, original)  # the input is left alone (the normals are edited in copies)
     for n in range(2):
-        np.testing.assert_array_equal(applied[n].numpy(), apply(torch.from_numpy(features[n]), code, normals=True).numpy())
+        np.testing.assert_array_equal(
+            applied[n].numpy(), apply(torch.from_numpy(features[n]), code, normals=True).numpy()
+        )
     image = torch.from_numpy(features[:, :3])
     assert torch.equal(undo(apply(image, code), code), image)
 
@@ -44,8 +47,10 @@ def test_an_eight_way_ensemble_is_equivariant_and_one_way_is_the_plain_denoiser(
     layers = render_layers(24, 40)
     plain_denoiser = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype))
     plain = plain_denoiser(layers)
-    assert np.array_equal(FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype, ensemble=1))(layers).image,
-                          plain.image)
+    assert np.array_equal(
+        FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype, ensemble=1))(layers).image,
+        plain.image,
+    )
     ensemble = FullImageDenoiser(diffuse, specular, DenoiserOptions(dtype=inference_dtype, ensemble=8))
     assert ensemble.device.endswith(", ensemble of 8")  # said next to its timings in the tables
     result = ensemble(layers)

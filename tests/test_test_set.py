@@ -1,4 +1,5 @@
 """The default test set: enough images of every family, the hard cases present, and no training scene in it."""
+
 from pathlib import Path
 
 import pytest
@@ -32,8 +33,7 @@ def test_default_test_set_holds_the_hard_cases(variant):
     assert any(not n.has_specular for n in needs.values())
     assert any({"SmoothConductor", "SmoothDielectric"} & set(n.bsdf_types) for n in needs.values())
     environment = {"EnvironmentMapEmitter", "ConstantBackgroundEmitter"}
-    assert any(spec.family == "studio" and not environment & set(needs[spec.scene_id].emitter_types)
-               for spec in specs)
+    assert any(spec.family == "studio" and not environment & set(needs[spec.scene_id].emitter_types) for spec in specs)
 
 
 def test_a_test_seed_equal_to_the_corpus_seed_is_refused():
@@ -43,5 +43,7 @@ def test_a_test_seed_equal_to_the_corpus_seed_is_refused():
 
 
 def test_an_unknown_test_family_is_named_with_its_key():
-    with pytest.raises(EvalStageError, match=r"config key 'eval.test_families': unknown procedural families \['moon'\]"):
+    with pytest.raises(
+        EvalStageError, match=r"config key 'eval.test_families': unknown procedural families \['moon'\]"
+    ):
         eval_scenes(load_config(None, ["eval.test_families=['moon']"]))

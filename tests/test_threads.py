@@ -1,5 +1,6 @@
 """torch's OpenMP pool kept out of other engines' way: glue around an exported graph runs inline, and
 libgomp's spin after each parallel region is cut when admc is imported first (admc/__init__.py)."""
+
 import os
 import subprocess
 import sys

@@ -1,4 +1,5 @@
 """`admc-pipe train` as a user runs it: pretrain on a tiny corpus, resume, then fine-tune from its weights."""
+
 import json
 import subprocess
 import sys
@@ -16,13 +17,32 @@ SHIP_WEIGHTS = Path(__file__).resolve().parents[1] / "scripts" / "ship_weights.p
 
 
 def settings(workdir, steps=4):
-    return [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[64, 64]", "render.spp=[2, 4]",
-            "render.reference_spp=16", "corpus.n_scenes=3", "tile.patch_size=32", "tile.crops_per_scene=2",
-            "tile.split=[0.5, 0.5, 0.0]", "tile.seed=1", "model.channels=8", "model.blocks=1",
-            "model.cond_channels=8", "model.encoder_channels=8", "model.critic_channels=4",
-            f"train.steps={steps}", "train.l1_warmup_steps=1", "train.critic_only_steps=1",
-            "train.head_tail_start_step=0", "train.val_every=2", "train.val_patches=2",
-            "train.checkpoint_every=2", "train.log_every=1", "train.threads=1"]
+    return [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        "render.resolution=[64, 64]",
+        "render.spp=[2, 4]",
+        "render.reference_spp=16",
+        "corpus.n_scenes=3",
+        "tile.patch_size=32",
+        "tile.crops_per_scene=2",
+        "tile.split=[0.5, 0.5, 0.0]",
+        "tile.seed=1",
+        "model.channels=8",
+        "model.blocks=1",
+        "model.cond_channels=8",
+        "model.encoder_channels=8",
+        "model.critic_channels=4",
+        f"train.steps={steps}",
+        "train.l1_warmup_steps=1",
+        "train.critic_only_steps=1",
+        "train.head_tail_start_step=0",
+        "train.val_every=2",
+        "train.val_patches=2",
+        "train.checkpoint_every=2",
+        "train.log_every=1",
+        "train.threads=1",
+    ]
 
 
 def cli(*args):
@@ -107,8 +127,12 @@ def test_changed_architecture_is_refused_until_restart(pretrained):
 def test_eval_includes_the_trained_model(pretrained):
     workdir, _ = pretrained
     weights = workdir / "train" / "pretrain" / "weights-fp16.pt"
-    out = cli("eval", "--weights", str(weights), *flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1",
-                                                                           "eval.also_ensemble_dark=true"]))
+    out = cli(
+        "eval",
+        "--weights",
+        str(weights),
+        *flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1", "eval.also_ensemble_dark=true"]),
+    )
     assert out.returncode == 0, out.stderr
     table = (workdir / "eval" / "table1.csv").read_text()
     assert {"noisy", "oidn", "admc"} <= {line.split(",")[1] for line in table.splitlines()[1:]}
@@ -122,10 +146,20 @@ def test_eval_includes_the_trained_model(pretrained):
 def test_eval_compares_several_checkpoints_in_one_table(pretrained):
     workdir, _ = pretrained
     run = workdir / "train" / "pretrain"
-    common = flags(settings(workdir) + ["eval.split='val'", "eval.repeats=1", "eval.warmup=0", "eval.optix='off'",
-                                       "eval.also_ensemble_dark=false"])  # one row per checkpoint
-    out = cli("eval", "--weights", str(run / "weights-fp16.pt"), "--weights", f"last={run / 'checkpoint.pt'}",
-              "--set", "eval.out_dir='eval-two'", *common)
+    common = flags(
+        settings(workdir)
+        + ["eval.split='val'", "eval.repeats=1", "eval.warmup=0", "eval.optix='off'", "eval.also_ensemble_dark=false"]
+    )  # one row per checkpoint
+    out = cli(
+        "eval",
+        "--weights",
+        str(run / "weights-fp16.pt"),
+        "--weights",
+        f"last={run / 'checkpoint.pt'}",
+        "--set",
+        "eval.out_dir='eval-two'",
+        *common,
+    )
     assert out.returncode == 0, out.stderr
     doc = json.loads((workdir / "eval-two" / "results.json").read_text())
     assert {row["method"] for row in doc["table"]} == {"noisy", "oidn", "admc-pretrain", "last"}
@@ -164,8 +198,11 @@ def test_ship_weights_publishes_the_run_or_a_checkpoint_saved_at_a_chosen_step(p
     entries = json.loads((tmp_path / "weights" / "manifest.json").read_text())["weights"]
     assert [(e["file"], e["steps"]) for e in entries] == [("chosen.pt", step)]  # same architecture: replaced
     start = tmp_path / "weights" / "from-run.pt"
-    out = subprocess.run([*ship, "blend", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "0.25"],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [*ship, "blend", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "0.25"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0, out.stderr
     blend, begin = load_weights(tmp_path / "weights" / "blend.pt"), load_weights(start)
     for branch, state in checkpoint["branches"].items():  # 0.75 x the start + 0.25 x the checkpoint, then fp16
@@ -174,12 +211,16 @@ def test_ship_weights_publishes_the_run_or_a_checkpoint_saved_at_a_chosen_step(p
             assert torch.equal(blend["branches"][branch]["generator"][key], expected)
     assert blend["metadata"]["selected"]["diffuse"]["blend"] == 0.25
     other = WEIGHTS_DIR / "admc-small-pretrained.pt"  # another architecture: refused, named
-    out = subprocess.run([*ship, "mixed", "--checkpoint", str(saved), "--blend-from", str(other)],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [*ship, "mixed", "--checkpoint", str(saved), "--blend-from", str(other)], capture_output=True, text=True
+    )
     assert out.returncode != 0 and f"{other}: not the architecture" in out.stderr
     assert not (tmp_path / "weights" / "mixed.pt").exists()
-    out = subprocess.run([*ship, "far", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "1.5"],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [*ship, "far", "--checkpoint", str(saved), "--blend-from", str(start), "--blend", "1.5"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 2 and "--blend 1.5" in out.stderr and "Traceback" not in out.stderr
 
 
@@ -202,8 +243,11 @@ def test_denoise_a_rendered_exr_and_an_oidn_style_set(pretrained, tmp_path):
 
     src = read_exr(render)
     colour = src["diffuse"] + src.get("specular", 0)
-    for suffix, name, data in ((".hdr.exr", "diffuse", colour), (".alb.exr", "albedo", src["albedo"]),
-                               (".nrm.exr", "normal", src["normal"])):
+    for suffix, name, data in (
+        (".hdr.exr", "diffuse", colour),
+        (".alb.exr", "albedo", src["albedo"]),
+        (".nrm.exr", "normal", src["normal"]),
+    ):
         write_exr(tmp_path / f"shot{suffix}", {BEAUTY: data}, precision="float")
     out = cli("denoise", str(tmp_path / "shot.hdr.exr"), "--weights", str(weights))
     assert out.returncode == 0, out.stderr
@@ -225,8 +269,17 @@ def test_the_default_config_finds_the_shipped_weights_and_they_load():
 
 def test_finetune_names_how_the_config_differs_from_the_shipped_weights(tmp_path):
     """A [model] the shipped weights do not have: the message names each differing key and its shipped value."""
-    out = cli("train", "--stage", "finetune", "--set", "model.backbone=unet", "--set", "model.channels=24",
-              "--set", f"run.workdir='{tmp_path}'")
+    out = cli(
+        "train",
+        "--stage",
+        "finetune",
+        "--set",
+        "model.backbone=unet",
+        "--set",
+        "model.channels=24",
+        "--set",
+        f"run.workdir='{tmp_path}'",
+    )
     assert out.returncode == 2
     assert "admc-small-pretrained.pt has model.backbone = 'residual', model.channels = 16" in out.stderr, out.stderr
     assert "admc-small-refiner.pt" not in out.stderr and "Traceback" not in out.stderr
@@ -265,10 +318,15 @@ def test_finetune_and_eval_with_the_noise_input(pretrained):
     assert "the noise input added, its weights starting at 0" in out.stdout + out.stderr
     checkpoint = load_checkpoint(workdir / "train" / "finetune-noise" / "checkpoint.pt")
     assert checkpoint["step"] == 2 and checkpoint["model"]["noise_input"] is True
-    out = cli("eval", *flags(noise + ["eval.split='val'", "eval.repeats=1", "eval.also_ensemble_dark=false",
-                                      "eval.engine='torch'"]))
+    out = cli(
+        "eval",
+        *flags(noise + ["eval.split='val'", "eval.repeats=1", "eval.also_ensemble_dark=false", "eval.engine='torch'"]),
+    )
     assert out.returncode == 0, out.stderr
-    assert f"admc: {workdir / 'train' / 'finetune-noise' / 'weights-fp16.pt'}" in (workdir / "eval" / "table1.md").read_text()
+    assert (
+        f"admc: {workdir / 'train' / 'finetune-noise' / 'weights-fp16.pt'}"
+        in (workdir / "eval" / "table1.md").read_text()
+    )
 
 
 def test_a_noise_input_model_without_weights_of_its_own_starts_from_those_without_it(tmp_path):

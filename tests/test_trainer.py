@@ -1,6 +1,7 @@
 """The trainer on a real tiny patch store (32x32 patches, tiny networks, CPU): the step overfits,
 stop + resume equals an uninterrupted run bit for bit, non-finite data never reaches the weights,
 bad stores are refused, every ablation trains, and checkpoints/weights round-trip."""
+
 import dataclasses
 import shutil
 from pathlib import Path
@@ -17,15 +18,39 @@ from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows
 from admc.model.train_settings import TrainSettings
 from admc.model.training.trainer import TrainingDiverged, train
-from admc.stores.checkpoints import (CheckpointError, export_weights, load_checkpoint, load_weights,
-                                     read_networks, save_checkpoint)
+from admc.stores.checkpoints import (
+    CheckpointError,
+    export_weights,
+    load_checkpoint,
+    load_weights,
+    read_networks,
+    save_checkpoint,
+)
 from admc.stores.patches import PatchReader, PatchStoreError
 
 TINY = ModelSettings(channels=8, blocks=2, cond_channels=8, encoder_channels=16, critic_channels=4)
-SETTINGS = TrainSettings(steps=7, batch_size=2, l1_warmup_steps=2, critic_only_steps=1, critic_steps_per_g=2,
-                         lr_g_diffuse=1e-4, lr_g_specular=1e-4, lr_d=1e-4, head_tail_start_step=3,
-                         lr_milestones=(5,), val_every=3, val_patches=4, checkpoint_every=2, log_every=2,
-                         num_workers=0, threads=0, device="cpu", precision="float32", seed=1, max_bad_steps=3)
+SETTINGS = TrainSettings(
+    steps=7,
+    batch_size=2,
+    l1_warmup_steps=2,
+    critic_only_steps=1,
+    critic_steps_per_g=2,
+    lr_g_diffuse=1e-4,
+    lr_g_specular=1e-4,
+    lr_d=1e-4,
+    head_tail_start_step=3,
+    lr_milestones=(5,),
+    val_every=3,
+    val_patches=4,
+    checkpoint_every=2,
+    log_every=2,
+    num_workers=0,
+    threads=0,
+    device="cpu",
+    precision="float32",
+    seed=1,
+    max_bad_steps=3,
+)
 PRECISIONS = ("float32", "bfloat16")
 
 
@@ -95,8 +120,9 @@ def test_the_step_overfits_a_handful_of_patches(store):
 def test_every_ablation_builds_and_takes_an_adversarial_step(store, mode):
     torch.manual_seed(0)
     model = dataclasses.replace(TINY, mode=mode)
-    settings = dataclasses.replace(SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1,
-                                   head_tail_start_step=0)
+    settings = dataclasses.replace(
+        SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1, head_tail_start_step=0
+    )
     trainer = BranchTrainer("diffuse", model, settings, 32, torch.device("cpu"))
     g0, d0 = snapshot(trainer.generator), snapshot(trainer.critic)
     ok, losses = trainer.step(0, [batch_of(store)])
@@ -120,13 +146,22 @@ def test_l1_only_ablation_never_touches_the_critic(store):
 @pytest.mark.parametrize("poison", ["nan_input", "overflowing_input"])
 def test_a_non_finite_batch_never_reaches_the_weights(store, poison, precision):
     torch.manual_seed(0)
-    settings = dataclasses.replace(SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1,
-                                   head_tail_start_step=0, precision=precision)
+    settings = dataclasses.replace(
+        SETTINGS,
+        l1_warmup_steps=0,
+        critic_only_steps=0,
+        critic_steps_per_g=1,
+        head_tail_start_step=0,
+        precision=precision,
+    )
     trainer = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
     assert trainer.step(0, [batch_of(store)])[0]
-    before = {"g": snapshot(trainer.generator), "d": snapshot(trainer.critic),
-              "opt": {k: o.state_dict() for k, o in trainer.optimizers.items()},
-              "sched": {k: s.state_dict() for k, s in trainer.schedulers.items()}}
+    before = {
+        "g": snapshot(trainer.generator),
+        "d": snapshot(trainer.critic),
+        "opt": {k: o.state_dict() for k, o in trainer.optimizers.items()},
+        "sched": {k: s.state_dict() for k, s in trainer.schedulers.items()},
+    }
     bad = batch_of(store)
     if poison == "nan_input":
         bad["noisy"][1, 0, 3, 3] = float("nan")
@@ -135,9 +170,12 @@ def test_a_non_finite_batch_never_reaches_the_weights(store, poison, precision):
     ok, _ = trainer.step(1, [bad])
     assert not ok
     assert (trainer.bad_total, trainer.bad_consecutive) == (1, 1)
-    after = {"g": trainer.generator.state_dict(), "d": trainer.critic.state_dict(),
-             "opt": {k: o.state_dict() for k, o in trainer.optimizers.items()},
-             "sched": {k: s.state_dict() for k, s in trainer.schedulers.items()}}
+    after = {
+        "g": trainer.generator.state_dict(),
+        "d": trainer.critic.state_dict(),
+        "opt": {k: o.state_dict() for k, o in trainer.optimizers.items()},
+        "sched": {k: s.state_dict() for k, s in trainer.schedulers.items()},
+    }
     assert_states_equal(before, after)
     assert trainer.step(2, [batch_of(store)])[0]
     assert (trainer.bad_total, trainer.bad_consecutive) == (1, 0)
@@ -183,7 +221,11 @@ def test_validation_shows_each_branch_against_its_start_and_oidn_on_the_same_pat
     result = train(store, tmp_path / "shown", settings, TINY, progress=True)
     lines = [line for line in capsys.readouterr().err.splitlines() if " validation: " in line]
     assert [line.split(" validation")[0] for line in lines] == [
-        "step 0 diffuse", "step 0 specular", "step 3 diffuse", "step 3 specular"]
+        "step 0 diffuse",
+        "step 0 specular",
+        "step 3 diffuse",
+        "step 3 specular",
+    ]
     assert all("x the start" in line and "x OIDN" in line for line in lines), lines
     for branch, val in result.validation.items():  # the store's OIDN rows of the same patches, as ratios
         assert val["relmse_vs_oidn"] == pytest.approx(val["relmse"] / val["oidn_relmse"])
@@ -195,6 +237,7 @@ def test_best_blend_finds_the_share_that_halves_two_independent_errors():
     """Two estimates with independent errors of equal size: their even blend has about half the squared
     error of either, and best_blend finds a share near 0.5; an exact estimate keeps its whole share."""
     from admc.model.training.validation import best_blend, to_linear
+
     torch.manual_seed(0)
     features = torch.rand(64, 7, 16, 16)
     reference = torch.rand(64, 3, 16, 16) + 0.5
@@ -202,7 +245,7 @@ def test_best_blend_finds_the_share_that_halves_two_independent_errors():
     errors = [0.05 * torch.randn(64, 3, 16, 16, dtype=torch.float64) for _ in range(2)]
     val = {"reference": reference, "features": features, "oidn": torch.log1p(ref_linear + errors[1]).float()}
     share, blended = best_blend(ref_linear + errors[0], val, "specular")
-    alone = float(((errors[0] ** 2) / (ref_linear ** 2 + 0.01)).mean())
+    alone = float(((errors[0] ** 2) / (ref_linear**2 + 0.01)).mean())
     assert 0.4 <= share <= 0.6 and blended < 0.6 * alone
     assert best_blend(ref_linear, val, "specular")[0] == 1.0
 
@@ -210,6 +253,7 @@ def test_best_blend_finds_the_share_that_halves_two_independent_errors():
 def test_an_oidn_blend_is_chosen_on_validation_and_shipped_with_the_weights(store, tmp_path, capsys):
     from admc.model.inference.denoiser import load_denoiser
     from admc.stores.checkpoints import read_blend
+
     settings = dataclasses.replace(SETTINGS, steps=3, val_every=3, oidn_blend=True)
     result = train(store, tmp_path / "blend", settings, TINY, progress=True)
     shipped = read_blend(result.weights)
@@ -261,11 +305,16 @@ def test_the_moving_average_is_checkpointed_resumed_and_shipped(store, tmp_path)
 
 
 def test_resume_in_another_precision_continues_and_says_so(store, tmp_path):
-    first = train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=4, val_every=0), TINY,
-                  progress=False)
+    first = train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=4, val_every=0), TINY, progress=False)
     assert load_checkpoint(first.checkpoint)["precision"] == "float32" and not first.notes
-    second = train(store, tmp_path / "run", dataclasses.replace(SETTINGS, precision="bfloat16", val_every=0),
-                   TINY, resume=True, progress=False)
+    second = train(
+        store,
+        tmp_path / "run",
+        dataclasses.replace(SETTINGS, precision="bfloat16", val_every=0),
+        TINY,
+        resume=True,
+        progress=False,
+    )
     assert second.step == 7 and load_checkpoint(second.checkpoint)["precision"] == "bfloat16"
     assert any("ran in float32, this run continues in bfloat16" in note for note in second.notes)
 
@@ -273,7 +322,7 @@ def test_resume_in_another_precision_continues_and_says_so(store, tmp_path):
 # bf16 keeps 8 significant bits (unit roundoff u = 2^-8); each of the generator's D = 2 * blocks + 4
 # chained 3x3 convs rounds its inputs and output (~2u of its output), so the outputs, and with them the
 # L1 loss, move by at most 2 * D * u of the output magnitude from float32.
-BF16_U = 2.0 ** -8
+BF16_U = 2.0**-8
 
 
 def test_bfloat16_steps_run_in_bf16_and_keep_float32_weights_and_losses(store):
@@ -281,8 +330,14 @@ def test_bfloat16_steps_run_in_bf16_and_keep_float32_weights_and_losses(store):
     runs = {}
     for precision in PRECISIONS:
         torch.manual_seed(0)
-        settings = dataclasses.replace(SETTINGS, l1_warmup_steps=0, critic_only_steps=0, critic_steps_per_g=1,
-                                       head_tail_start_step=0, precision=precision)
+        settings = dataclasses.replace(
+            SETTINGS,
+            l1_warmup_steps=0,
+            critic_only_steps=0,
+            critic_steps_per_g=1,
+            head_tail_start_step=0,
+            precision=precision,
+        )
         trainer = BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
         dtypes = []
         trainer.generator.register_forward_hook(lambda m, i, out: dtypes.append(out.dtype))
@@ -308,8 +363,7 @@ def test_resume_refuses_changed_settings_and_a_missing_checkpoint(store, tmp_pat
         train(store, tmp_path / "none", SETTINGS, TINY, resume=True, progress=False)
     train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY, progress=False)
     with pytest.raises(ValueError, match=r"\['batch_size'\] differ"):
-        train(store, tmp_path / "run", dataclasses.replace(SETTINGS, batch_size=4), TINY, resume=True,
-              progress=False)
+        train(store, tmp_path / "run", dataclasses.replace(SETTINGS, batch_size=4), TINY, resume=True, progress=False)
     with pytest.raises(ValueError, match="exists: pass resume=True"):
         train(store, tmp_path / "run", SETTINGS, TINY, progress=False)
 
@@ -323,10 +377,18 @@ def test_a_checkpoint_older_than_a_train_setting_resumes_at_that_settings_defaul
     del checkpoint["settings"]["l1_floor"]
     save_checkpoint(tmp_path / "run" / "checkpoint.pt", checkpoint)
     with pytest.raises(ValueError, match=r"\['l1_floor'\] differ"):
-        train(store, tmp_path / "run", dataclasses.replace(settings, steps=3, l1_floor=0.1), TINY, resume=True,
-              progress=False)
-    assert train(store, tmp_path / "run", dataclasses.replace(settings, steps=3), TINY, resume=True,
-                 progress=False).step == 3
+        train(
+            store,
+            tmp_path / "run",
+            dataclasses.replace(settings, steps=3, l1_floor=0.1),
+            TINY,
+            resume=True,
+            progress=False,
+        )
+    assert (
+        train(store, tmp_path / "run", dataclasses.replace(settings, steps=3), TINY, resume=True, progress=False).step
+        == 3
+    )
 
 
 def test_a_run_of_bad_steps_stops_and_keeps_the_last_good_checkpoint(store_copy, tmp_path):
@@ -339,8 +401,14 @@ def test_a_run_of_bad_steps_stops_and_keeps_the_last_good_checkpoint(store_copy,
         array = root[f"train/{scene}/noisy_diffuse"]
         array[...] = np.full(array.shape, np.nan, dtype=np.float16)
     with pytest.raises(TrainingDiverged, match=r"diffuse: 3 consecutive steps .* \(step 4\)"):
-        train(store_copy, out, dataclasses.replace(settings, steps=20, checkpoint_every=1), TINY, resume=True,
-              progress=False)
+        train(
+            store_copy,
+            out,
+            dataclasses.replace(settings, steps=20, checkpoint_every=1),
+            TINY,
+            resume=True,
+            progress=False,
+        )
     kept = load_checkpoint(out / "checkpoint.pt")
     assert kept["step"] == 4
     assert_states_equal(kept["branches"], good["branches"])
@@ -378,11 +446,20 @@ def test_finetune_starts_from_exported_weights(store, tmp_path):
         # one L1 step with head/tail frozen: the head still holds the shipped (fp16) weights exactly
         got = state["branches"][branch]["generator"]["head.weight"]
         assert torch.equal(got, shipped["branches"][branch]["generator"]["head.weight"].float())
-        assert torch.equal(state["branches"][branch]["critic"]["classifier.2.weight"],
-                           shipped["branches"][branch]["critic"]["classifier.2.weight"].float())
+        assert torch.equal(
+            state["branches"][branch]["critic"]["classifier.2.weight"],
+            shipped["branches"][branch]["critic"]["classifier.2.weight"].float(),
+        )
     with pytest.raises(ValueError, match=r"model settings differ from the configured ones in \['channels'\]"):
-        train(store, tmp_path / "bad", settings, dataclasses.replace(TINY, channels=4), stage="finetune",
-              init_from=pre.weights, progress=False)
+        train(
+            store,
+            tmp_path / "bad",
+            settings,
+            dataclasses.replace(TINY, channels=4),
+            stage="finetune",
+            init_from=pre.weights,
+            progress=False,
+        )
     with pytest.raises(ValueError, match="needs init_from"):
         train(store, tmp_path / "none", settings, TINY, stage="finetune", progress=False)
 
@@ -422,8 +499,9 @@ def test_exported_weights_are_fp16_and_load_back(tmp_path):
     assert torch.allclose(fresh.generator.head.weight, trainer.generator.head.weight, rtol=1e-3, atol=1e-6)
     wide = BranchTrainer("diffuse", dataclasses.replace(TINY, channels=4), SETTINGS, 32, torch.device("cpu"))
     with pytest.raises(ValueError, match="weights.pt: diffuse generator weights do not fit"):
-        wide.load_networks(loaded["branches"]["diffuse"]["generator"], loaded["branches"]["diffuse"]["critic"],
-                           str(path))
+        wide.load_networks(
+            loaded["branches"]["diffuse"]["generator"], loaded["branches"]["diffuse"]["critic"], str(path)
+        )
     with pytest.raises(CheckpointError, match="not an admc-checkpoint file"):
         load_checkpoint(path)
 
@@ -462,14 +540,23 @@ def noise_store(tmp_path_factory, variant):
 
 
 def test_finetune_adds_the_noise_input_to_weights_trained_without_it(noise_store, tmp_path):
-    pre = train(noise_store, tmp_path / "pre", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY,
-                progress=False)  # a store with noise maps trains models without the input too
+    pre = train(
+        noise_store, tmp_path / "pre", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY, progress=False
+    )  # a store with noise maps trains models without the input too
     shipped = load_weights(pre.weights)["branches"]
     noise_model = dataclasses.replace(TINY, noise_input=True)
-    still = dataclasses.replace(SETTINGS, steps=1, val_every=0, l1_warmup_steps=1, head_tail_start_step=100,
-                                lr_g_diffuse=1e-12, lr_g_specular=1e-12)
-    fine = train(noise_store, tmp_path / "fine", still, noise_model, stage="finetune", init_from=pre.weights,
-                 progress=False)
+    still = dataclasses.replace(
+        SETTINGS,
+        steps=1,
+        val_every=0,
+        l1_warmup_steps=1,
+        head_tail_start_step=100,
+        lr_g_diffuse=1e-12,
+        lr_g_specular=1e-12,
+    )
+    fine = train(
+        noise_store, tmp_path / "fine", still, noise_model, stage="finetune", init_from=pre.weights, progress=False
+    )
     state = load_checkpoint(fine.checkpoint)
     assert state["model"]["noise_input"] is True
     for branch in ("diffuse", "specular"):
@@ -487,8 +574,11 @@ def test_finetune_adds_the_noise_input_to_weights_trained_without_it(noise_store
     # first step moves a weight by lr * |g| / (|g| + 1e-8): nonzero for any nonzero gradient, below the
     # body's lr (5 x 1e-4). (The tiny nets' encoder gradients are ~1e-12, so the steps are ~1e-7.)
     moving = dataclasses.replace(SETTINGS, steps=1, val_every=0, l1_warmup_steps=1, head_tail_start_step=100)
-    stepped = load_checkpoint(train(noise_store, tmp_path / "step", moving, noise_model, stage="finetune",
-                                    init_from=pre.weights, progress=False).checkpoint)
+    stepped = load_checkpoint(
+        train(
+            noise_store, tmp_path / "step", moving, noise_model, stage="finetune", init_from=pre.weights, progress=False
+        ).checkpoint
+    )
     for branch in ("diffuse", "specular"):
         weights = stepped["branches"][branch]["generator"]["encoder.layers.0.weight"][:, 7]
         assert torch.count_nonzero(weights) == weights.numel()
@@ -497,8 +587,11 @@ def test_finetune_adds_the_noise_input_to_weights_trained_without_it(noise_store
 
 def test_a_noise_input_model_refuses_a_store_without_noise_maps(store, tmp_path):
     model = dataclasses.replace(TINY, noise_input=True)
-    with pytest.raises(PatchStoreError, match=rf"patch store {store}: scene train/\S+ has no noise maps.*"
-                                              r"admc-pipe dataset"):
+    with pytest.raises(
+        PatchStoreError,
+        match=rf"patch store {store}: scene train/\S+ has no noise maps.*"
+        r"admc-pipe dataset",
+    ):
         train(store, tmp_path / "run", dataclasses.replace(SETTINGS, steps=1, val_every=0), model, progress=False)
 
 
@@ -526,8 +619,15 @@ def test_distillation_pulls_a_slimmer_student_toward_its_teacher(store, tmp_path
     teacher_model = dataclasses.replace(TINY, input_skip=True)  # outputs near the input, not clipped to 0
     teacher_path = _teacher_weights(tmp_path, teacher_model)
     student = dataclasses.replace(teacher_model, cfm_per_block=1, condition_layers=1)
-    settings = dataclasses.replace(SETTINGS, adversarial=False, head_tail_start_step=0, lr_g_diffuse=2e-3,
-                                   l1_weight=1e-9, distill_from=str(teacher_path), distill_weight=1.0)
+    settings = dataclasses.replace(
+        SETTINGS,
+        adversarial=False,
+        head_tail_start_step=0,
+        lr_g_diffuse=2e-3,
+        l1_weight=1e-9,
+        distill_from=str(teacher_path),
+        distill_weight=1.0,
+    )
     torch.manual_seed(0)
     trainer = BranchTrainer("diffuse", student, settings, 32, torch.device("cpu"))
     batch = batch_of(store)
@@ -548,8 +648,11 @@ def test_distillation_pulls_a_slimmer_student_toward_its_teacher(store, tmp_path
 def test_a_teacher_that_reads_other_inputs_or_is_missing_is_refused_naming_the_key(store, tmp_path):
     refiner = _teacher_weights(tmp_path, dataclasses.replace(TINY, base="oidn"))
     settings = dataclasses.replace(SETTINGS, distill_from=str(refiner))
-    with pytest.raises(ValueError, match=r"^train.distill_from: .*teacher.pt has model.base = 'oidn', this "
-                                         r"config 'noisy': a teacher must read the same inputs"):
+    with pytest.raises(
+        ValueError,
+        match=r"^train.distill_from: .*teacher.pt has model.base = 'oidn', this "
+        r"config 'noisy': a teacher must read the same inputs",
+    ):
         BranchTrainer("diffuse", TINY, settings, 32, torch.device("cpu"))
     missing = dataclasses.replace(SETTINGS, distill_from=str(tmp_path / "nope.pt"))
     with pytest.raises(ValueError, match=r"^train.distill_from: .*nope.pt is not a file"):
@@ -569,8 +672,11 @@ def test_slim_weights_script_writes_a_fine_tuning_start_of_the_slim_model(store,
 
     pre = train(store, tmp_path / "pre", dataclasses.replace(SETTINGS, steps=2, val_every=0), TINY, progress=False)
     out = tmp_path / "slim.pt"
-    done = subprocess.run([sys.executable, str(SLIM_WEIGHTS), str(pre.weights), str(store), str(out),
-                           "--patches", "4"], capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, str(SLIM_WEIGHTS), str(pre.weights), str(store), str(out), "--patches", "4"],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
     assert "diffuse: slim output differs from the full one by" in done.stdout
     slim = dataclasses.replace(TINY, cfm_per_block=1, condition_layers=1)
@@ -578,7 +684,9 @@ def test_slim_weights_script_writes_a_fine_tuning_start_of_the_slim_model(store,
     assert ModelSettings.from_saved(saved) == slim
     settings = dataclasses.replace(SETTINGS, steps=1, val_every=0, distill_from=str(pre.weights))
     train(store, tmp_path / "fine", settings, slim, stage="finetune", init_from=out, progress=False)
-    for args, message in (([str(out), str(store), str(tmp_path / "again.pt")], "which is not slimmer"),
-                          ([str(tmp_path / "none.pt"), str(store), str(tmp_path / "x.pt")], "none.pt: no such file")):
+    for args, message in (
+        ([str(out), str(store), str(tmp_path / "again.pt")], "which is not slimmer"),
+        ([str(tmp_path / "none.pt"), str(store), str(tmp_path / "x.pt")], "none.pt: no such file"),
+    ):
         done = subprocess.run([sys.executable, str(SLIM_WEIGHTS), *args], capture_output=True, text=True)
         assert done.returncode == 1 and message in done.stderr and "Traceback" not in done.stderr, done.stderr

@@ -5,6 +5,7 @@ Round-trip tolerance: a stored log value d is off by at most half an FP16 ulp, d
 |x' - x| <= (x + A) * (exp(delta) - 1): a relative error of about delta, i.e. <= 0.8 % at the
 radiance maximum (d <= 16.9) and ~0.05 % for radiance near 1.
 """
+
 import json
 
 import numpy as np
@@ -16,15 +17,19 @@ from hypothesis.extra.numpy import arrays
 from admc.common.buffers import VARIANCE_MAX, sanitize
 from admc.model import transforms as T
 
-EXTREMES = [0.0, 1e-8, 1e-3, 0.5, 1.0, 7.0, 1e4, 65504.0, 7e4, 1e9, 3e38, -1e-8, -5.0, -1e9,
-            np.nan, np.inf, -np.inf]
+EXTREMES = [0.0, 1e-8, 1e-3, 0.5, 1.0, 7.0, 1e4, 65504.0, 7e4, 1e9, 3e38, -1e-8, -5.0, -1e9, np.nan, np.inf, -np.inf]
 SHAPE = (3, 4, 3)
 
-radiance = arrays(np.float32, SHAPE, elements=st.one_of(
-    st.sampled_from(EXTREMES), st.floats(width=32, allow_nan=True, allow_infinity=True)))
-albedo_values = arrays(np.float32, SHAPE, elements=st.one_of(
-    st.sampled_from([0.0, 1.0, 0.5, 1e-8, 2.0, -1.0, np.nan, np.inf]),
-    st.floats(0, 1, width=32)))
+radiance = arrays(
+    np.float32,
+    SHAPE,
+    elements=st.one_of(st.sampled_from(EXTREMES), st.floats(width=32, allow_nan=True, allow_infinity=True)),
+)
+albedo_values = arrays(
+    np.float32,
+    SHAPE,
+    elements=st.one_of(st.sampled_from([0.0, 1.0, 0.5, 1e-8, 2.0, -1.0, np.nan, np.inf]), st.floats(0, 1, width=32)),
+)
 
 
 def _fp16_delta(d: np.ndarray) -> np.ndarray:
@@ -54,14 +59,21 @@ def test_log_transforms_match_numpy_on_any_layout(layout):
     the albedo product rounds once more) and leave the caller's arrays as they were."""
     rng = np.random.default_rng(3)
     linear, albedo = rng.gamma(0.5, 2.0, (4, 6, 3)).astype(np.float32), rng.random((4, 6, 3), dtype=np.float32)
-    views = {"contiguous": lambda a: a, "flipped": lambda a: a[::-1, ::2],
-             "channels_first": lambda a: np.ascontiguousarray(a.transpose(2, 0, 1)).transpose(1, 2, 0),
-             "scalar": lambda a: a[1, 2, 0]}
+    views = {
+        "contiguous": lambda a: a,
+        "flipped": lambda a: a[::-1, ::2],
+        "channels_first": lambda a: np.ascontiguousarray(a.transpose(2, 0, 1)).transpose(1, 2, 0),
+        "scalar": lambda a: a[1, 2, 0],
+    }
     x, a = views[layout](linear), views[layout](albedo)
     before = (np.copy(x), np.copy(a))
     a32 = np.clip(a, 0, 1) + np.float32(T.EPS)
-    pairs = [(T.diffuse_forward(x, a), np.log1p(x / a32)), (T.specular_forward(x), np.log1p(x)),
-             (T.diffuse_inverse(x, a), np.expm1(x) * a32), (T.specular_inverse(x), np.expm1(x))]
+    pairs = [
+        (T.diffuse_forward(x, a), np.log1p(x / a32)),
+        (T.specular_forward(x), np.log1p(x)),
+        (T.diffuse_inverse(x, a), np.expm1(x) * a32),
+        (T.specular_inverse(x), np.expm1(x)),
+    ]
     for got, want in pairs:
         np.testing.assert_allclose(got, want, rtol=4 * np.finfo(np.float32).eps, atol=0)
     np.testing.assert_array_equal(x, before[0])
@@ -105,10 +117,12 @@ anything = st.one_of(st.sampled_from(EXTREMES), st.floats(width=32, allow_nan=Tr
 
 
 @settings(max_examples=150, deadline=None)
-@given(n=arrays(np.float32, SHAPE, elements=anything),
-       z=arrays(np.float32, (3, 4, 1), elements=anything),
-       a=arrays(np.float32, SHAPE, elements=anything),
-       c=arrays(np.float32, (3, 4, 1), elements=st.sampled_from([0.0, 0.25, 1.0, np.nan])))
+@given(
+    n=arrays(np.float32, SHAPE, elements=anything),
+    z=arrays(np.float32, (3, 4, 1), elements=anything),
+    a=arrays(np.float32, SHAPE, elements=anything),
+    c=arrays(np.float32, (3, 4, 1), elements=st.sampled_from([0.0, 0.25, 1.0, np.nan])),
+)
 def test_features_always_in_unit_range(n, z, a, c):
     f = T.features(n, z, a, c)
     assert f.shape == (3, 4, 7) and f.dtype == np.float32
@@ -151,14 +165,14 @@ def test_transform_spec_is_json_and_names_parameters():
     spec = T.transform_spec()
     assert json.loads(json.dumps(spec)) == spec
     assert spec["eps"] == T.EPS == 0.00316
-    assert spec["feature_channels"] == ["normal.X", "normal.Y", "normal.Z", "depth",
-                                        "albedo.R", "albedo.G", "albedo.B"]
+    assert spec["feature_channels"] == ["normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B"]
     assert T.TRANSFORM_PARAMS == spec
 
 
 def test_feature_layout_slices_name_the_channels_transforms_writes():
     """The named slices of admc.common.layout pick the buffers `features` concatenates."""
     from admc.common.layout import ALBEDO, DEPTH, FEATURE_CHANNELS, N_FEATURES, NORMAL
+
     rng = np.random.default_rng(0)
     normal, albedo = rng.uniform(-1, 1, (4, 5, 3)), rng.uniform(0, 1, (4, 5, 3))
     depth, coverage = rng.uniform(1, 2, (4, 5, 1)), np.ones((4, 5, 1))
@@ -192,9 +206,11 @@ def test_noise_maps_of_the_two_branches_use_their_own_log_domains():
     specular = np.sqrt(var) / (x + 1.0)
     unit = T.NOISE_STD_UNIT
     assert T.diffuse_noise(var, x, albedo)[0, 0, 0] == pytest.approx(
-        np.log1p(diffuse.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
+        np.log1p(diffuse.mean() / unit) / np.log1p(1 / unit), rel=1e-6
+    )
     assert T.specular_noise(var, x)[0, 0, 0] == pytest.approx(
-        np.log1p(specular.mean() / unit) / np.log1p(1 / unit), rel=1e-6)
+        np.log1p(specular.mean() / unit) / np.log1p(1 / unit), rel=1e-6
+    )
     assert T.specular_noise(np.zeros_like(var), x)[0, 0, 0] == 0.0  # converged: nothing left to remove
     one = T.specular_noise(np.full((1, 1, 3), 4.0), np.ones((1, 1, 3)))  # std 2 / (1 + 1) = 1
     assert one[0, 0, 0] == pytest.approx(1.0, rel=1e-6)

@@ -1,4 +1,5 @@
 """The multi-scale (U-Net) CFM generator: shapes, reach, exact tiling, settings and a real training step."""
+
 import dataclasses
 
 import numpy as np
@@ -67,9 +68,9 @@ def test_a_flat_image_of_any_size_stays_flat_up_to_its_border():
 def test_receptive_radius_bounds_an_impulse_and_is_not_loose(levels, blocks):
     g = strong_unet(1, dataclasses.replace(TINY, levels=levels, blocks=blocks))
     radius = receptive_radius(g)
-    size = 2 * radius + 2 ** levels * 3 + 1
+    size = 2 * radius + 2**levels * 3 + 1
     reach = 0
-    for offset in range(2 ** levels):  # the reach depends on where the impulse sits on the coarse grid
+    for offset in range(2**levels):  # the reach depends on where the impulse sits on the coarse grid
         x, f = torch.rand(1, 3, size, size), torch.rand(1, 7, size, size)
         centre = size // 2 + offset
         with torch.no_grad():
@@ -78,7 +79,7 @@ def test_receptive_radius_bounds_an_impulse_and_is_not_loose(levels, blocks):
             changed = (g(x, f) - before).abs().amax(dim=1)[0] > 0
         ys, xs = torch.nonzero(changed, as_tuple=True)
         reach = max(reach, int((ys - centre).abs().max()), int((xs - centre).abs().max()))
-    assert radius - 2 ** levels <= reach <= radius
+    assert radius - 2**levels <= reach <= radius
 
 
 def test_tiles_on_the_coarse_grid_equal_the_untiled_image_and_unaligned_tiles_do_not():
@@ -98,9 +99,11 @@ def test_tiles_on_the_coarse_grid_equal_the_untiled_image_and_unaligned_tiles_do
 
 def test_full_image_denoiser_tiles_a_unet_exactly_and_loads_it_from_weights(tmp_path, inference_dtype):
     rng = np.random.default_rng(0)
-    layers = {"diffuse": rng.gamma(0.5, 2.0, (45, 60, 3)).astype(np.float32),
-              "albedo": rng.random((45, 60, 3), dtype=np.float32),
-              "normal": np.tile(np.array([0, 0, 1], np.float32), (45, 60, 1))}
+    layers = {
+        "diffuse": rng.gamma(0.5, 2.0, (45, 60, 3)).astype(np.float32),
+        "albedo": rng.random((45, 60, 3), dtype=np.float32),
+        "normal": np.tile(np.array([0, 0, 1], np.float32), (45, 60, 1)),
+    }
     g = strong_unet(3)
     tiled = FullImageDenoiser(g, None, DenoiserOptions(tile=16, dtype=inference_dtype))(layers)
     untiled = FullImageDenoiser(g, None, DenoiserOptions(tile=512, dtype=inference_dtype))(layers)
@@ -110,11 +113,15 @@ def test_full_image_denoiser_tiles_a_unet_exactly_and_loads_it_from_weights(tmp_
     rounding = 4 * np.finfo(np.float32).eps * np.abs(untiled.diffuse)  # the inverse transform in float32
     assert np.all(np.abs(tiled.diffuse - untiled.diffuse) <= gain * tolerance * 1.001 + rounding)
 
-    model = ModelSettings(channels=4, blocks=1, cond_channels=4, encoder_channels=8, critic_channels=4,
-                          backbone="unet", levels=2)
+    model = ModelSettings(
+        channels=4, blocks=1, cond_channels=4, encoder_channels=8, critic_channels=4, backbone="unet", levels=2
+    )
     path = tmp_path / "unet.pt"
-    export_weights(path, {"diffuse": {"generator": g.state_dict(), "critic": {}}},
-                   {"model": dataclasses.asdict(model), "transform": transform_spec(), "patch_size": 32})
+    export_weights(
+        path,
+        {"diffuse": {"generator": g.state_dict(), "critic": {}}},
+        {"model": dataclasses.asdict(model), "transform": transform_spec(), "patch_size": 32},
+    )
     loaded = load_denoiser(path, DenoiserOptions(tile=16))
     assert isinstance(loaded.generators["diffuse"], UNetGenerator)
     for name, value in loaded.generators["diffuse"].state_dict().items():  # the fp16 file's values
@@ -128,13 +135,24 @@ def test_weights_saved_before_the_backbone_setting_load_as_the_paper_body():
 
 def test_a_unet_branch_takes_real_adversarial_training_steps():
     torch.manual_seed(0)
-    model = ModelSettings(channels=4, blocks=1, cond_channels=4, encoder_channels=8, critic_channels=4,
-                          backbone="unet", levels=2)
-    settings = TrainSettings(steps=3, batch_size=2, l1_warmup_steps=0, critic_only_steps=0, head_tail_start_step=0,
-                             lr_milestones=(10,), device="cpu")
+    model = ModelSettings(
+        channels=4, blocks=1, cond_channels=4, encoder_channels=8, critic_channels=4, backbone="unet", levels=2
+    )
+    settings = TrainSettings(
+        steps=3,
+        batch_size=2,
+        l1_warmup_steps=0,
+        critic_only_steps=0,
+        head_tail_start_step=0,
+        lr_milestones=(10,),
+        device="cpu",
+    )
     trainer = BranchTrainer("diffuse", model, settings, 32, torch.device("cpu"))
-    batch = {"noisy": torch.rand(2, 3, 32, 32), "features": torch.rand(2, 7, 32, 32),
-             "reference": torch.rand(2, 3, 32, 32)}
+    batch = {
+        "noisy": torch.rand(2, 3, 32, 32),
+        "features": torch.rand(2, 7, 32, 32),
+        "reference": torch.rand(2, 3, 32, 32),
+    }
     before = {k: v.clone() for k, v in trainer.generator.state_dict().items()}
     ok, losses = trainer.step(0, [batch])
     assert ok and np.isfinite(losses["generator_loss"]) and np.isfinite(losses["critic_loss"])

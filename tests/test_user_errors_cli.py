@@ -1,5 +1,6 @@
 """User errors as a person meets them through `admc-pipe`: one message naming the file or key and the problem,
 a non-zero exit, no traceback; and bugs (anything but admc.errors.AdmcError) keep theirs."""
+
 import dataclasses
 import json
 import os
@@ -61,8 +62,9 @@ def test_a_bare_value_error_is_a_bug_and_keeps_its_traceback():
 
 def test_admc_debug_shows_the_traceback_of_a_user_error(tmp_path):
     env = {**os.environ, "ADMC_DEBUG": "1"}
-    out = subprocess.run([ADMC, "config", "--config", str(tmp_path)], capture_output=True, text=True, env=env,
-                         timeout=120)
+    out = subprocess.run(
+        [ADMC, "config", "--config", str(tmp_path)], capture_output=True, text=True, env=env, timeout=120
+    )
     assert out.returncode != 0 and "Traceback" in out.stderr and "ConfigError" in out.stderr
 
 
@@ -77,8 +79,11 @@ def test_denoise_output_naming_a_directory(tmp_path):
 
 def test_denoise_with_an_engine_not_offered(tmp_path):
     frame = _oidn_style_input(tmp_path)
-    refused(run("denoise", str(frame), "--engine", "tensorrt", "--weights", str(SHIPPED)),
-            "--engine must be one of", "got 'tensorrt'")
+    refused(
+        run("denoise", str(frame), "--engine", "tensorrt", "--weights", str(SHIPPED)),
+        "--engine must be one of",
+        "got 'tensorrt'",
+    )
     assert not (tmp_path / "frame.denoised.exr").exists()
     out = run("denoise", str(frame), "--engine", "onnxruntime", "--weights", str(SHIPPED))
     assert out.returncode == 0 and "onnxruntime float32" in out.stdout, out.stderr  # the engine it ran in
@@ -129,11 +134,17 @@ def test_weights_whose_tensors_do_not_match_their_metadata(tiny_workdir, tmp_pat
     weights = _mislabelled_weights(tmp_path / "mislabelled.pt", tiny)
     frame = _oidn_style_input(tmp_path)
     out = run("denoise", str(frame), "--weights", str(weights))
-    refused(out, f"{weights}: diffuse generator weights do not fit the architecture its own metadata describes",
-            "tensor(s) of another shape (first ")
+    refused(
+        out,
+        f"{weights}: diffuse generator weights do not fit the architecture its own metadata describes",
+        "tensor(s) of another shape (first ",
+    )
     out = run("train", "--stage", "finetune", "--init", str(weights), *flags(settings(tiny_workdir)))
-    refused(out, f"{weights}: diffuse generator weights do not fit the configured architecture",
-            "tensor(s) of another shape (first ")
+    refused(
+        out,
+        f"{weights}: diffuse generator weights do not fit the configured architecture",
+        "tensor(s) of another shape (first ",
+    )
 
 
 def test_config_naming_a_directory_or_non_utf8_file(tmp_path):
@@ -144,8 +155,16 @@ def test_config_naming_a_directory_or_non_utf8_file(tmp_path):
 
 
 def test_printed_config_round_trips(tmp_path):
-    overrides = ["--set", "run.workdir='/tmp/a \"quoted\" \\\\ dir é'", "--set", "render.spp=[2, 8]",
-                 "--set", "corpus.xml_dirs=['scenes/a', 'b']", "--set", "train.lr_d=3e-05"]
+    overrides = [
+        "--set",
+        "run.workdir='/tmp/a \"quoted\" \\\\ dir é'",
+        "--set",
+        "render.spp=[2, 8]",
+        "--set",
+        "corpus.xml_dirs=['scenes/a', 'b']",
+        "--set",
+        "train.lr_d=3e-05",
+    ]
     first = run("config", *overrides)
     assert first.returncode == 0, first.stderr
     assert first.stdout.startswith("[corpus]\n") and "\n[run]\n" in first.stdout
@@ -169,8 +188,7 @@ def test_a_batch_carries_on_past_a_bad_file_and_fails_at_the_end(tmp_path):
     bad.write_text("not an image")
     out = run("denoise", str(good[0]), str(bad), str(good[1]), "--weights", str(SHIPPED))
     written = [path.with_name("frame.denoised.exr") for path in good]
-    refused(out, "1 of 3 inputs not denoised", f"{bad}: not an OpenEXR file",
-            f"written: {written[0]}, {written[1]}")
+    refused(out, "1 of 3 inputs not denoised", f"{bad}: not an OpenEXR file", f"written: {written[0]}, {written[1]}")
     assert all(path.is_file() for path in written)
 
 
@@ -180,9 +198,14 @@ def _interrupt_at(workdir: Path, step: int, checkpoint_every: int):
     default action back: a suite started in the background of a script inherits it ignored, and the
     training would then never stop."""
     items = settings(workdir, steps=10_000) + [f"train.checkpoint_every={checkpoint_every}", "train.num_workers=2"]
-    process = subprocess.Popen([ADMC, "train", *flags(items)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    process = subprocess.Popen(
+        [ADMC, "train", *flags(items)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     seen = []
     for line in process.stderr:
         seen.append(line)
@@ -245,17 +268,22 @@ def test_noise_input_weights_name_the_variance_layer_an_input_lacks(tmp_path):
     weights = noise_input_weights(tmp_path / "noise.pt")
     frame = _oidn_style_input(tmp_path)  # OIDN-style files carry no variance
     out = run("denoise", str(frame), "--weights", str(weights))
-    refused(out, f"{frame}: lacks layer(s) diffuse_var, which the weights {weights} read",
-            "--set model.noise_input=false")
+    refused(
+        out, f"{frame}: lacks layer(s) diffuse_var, which the weights {weights} read", "--set model.noise_input=false"
+    )
     assert not list(tmp_path.glob("*denoised*"))
 
     rng = np.random.default_rng(0)
-    layers = {name: rng.uniform(0, 1, (8, 8, 3)).astype(np.float32)
-              for name in ("diffuse", "specular", "albedo", "normal", "diffuse_var")}
+    layers = {
+        name: rng.uniform(0, 1, (8, 8, 3)).astype(np.float32)
+        for name in ("diffuse", "specular", "albedo", "normal", "diffuse_var")
+    }
     render = tmp_path / "render.exr"
     write_exr(render, layers, precision="float")
-    refused(run("denoise", str(render), "--weights", str(weights)),
-            f"{render}: lacks layer(s) specular_var, which the weights {weights} read")
+    refused(
+        run("denoise", str(render), "--weights", str(weights)),
+        f"{render}: lacks layer(s) specular_var, which the weights {weights} read",
+    )
     layers["specular_var"] = layers["diffuse_var"]
     write_exr(render, layers, precision="float")
     for engine in ("torch", "onnxruntime", "openvino"):

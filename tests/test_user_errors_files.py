@@ -5,6 +5,7 @@ A read-only folder: chmod for a normal user; root ignores permissions, so as roo
 mount (skipped where root may not mount). A full disk: a file-size limit (RLIMIT_FSIZE) on the command,
 which makes the kernel refuse the write (EFBIG) on any file system and for any user, as ENOSPC would.
 """
+
 import contextlib
 import os
 import pickle
@@ -52,8 +53,10 @@ def read_only(folder: Path):
 
 def with_file_size_limit(limit: int, *args: str) -> subprocess.CompletedProcess:
     """Run admc-pipe with every file it writes limited to `limit` bytes: writes beyond fail as on a full disk."""
+
     def limit_files():
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
     return subprocess.run([ADMC, *args], capture_output=True, text=True, timeout=600, preexec_fn=limit_files)
 
 
@@ -61,13 +64,15 @@ def with_file_size_limit(limit: int, *args: str) -> subprocess.CompletedProcess:
 def finished_run(tmp_path_factory):
     """A workdir with a finished tiny pretraining (checkpoint and weights)."""
     workdir = tmp_path_factory.mktemp("finished")
-    out = subprocess.run([ADMC, "train", *flags(settings(workdir, steps=2))], capture_output=True, text=True,
-                         timeout=600)
+    out = subprocess.run(
+        [ADMC, "train", *flags(settings(workdir, steps=2))], capture_output=True, text=True, timeout=600
+    )
     assert out.returncode == 0, out.stderr
     return workdir
 
 
 # ---- nothing a user has is lost -------------------------------------------------------------------------
+
 
 def test_train_without_its_checkpoint_keeps_the_finished_weights(finished_run):
     run_dir = finished_run / "train" / "pretrain"
@@ -75,8 +80,9 @@ def test_train_without_its_checkpoint_keeps_the_finished_weights(finished_run):
     (run_dir / "checkpoint.pt").rename(run_dir / "moved-checkpoint.pt")
     before = weights.read_bytes()
     try:
-        out = subprocess.run([ADMC, "train", *flags(settings(finished_run, steps=2))], capture_output=True, text=True,
-                             timeout=600)
+        out = subprocess.run(
+            [ADMC, "train", *flags(settings(finished_run, steps=2))], capture_output=True, text=True, timeout=600
+        )
         refused(out, f"{weights}: holds the finished weights of an earlier run", "--restart")
         assert weights.read_bytes() == before
     finally:
@@ -102,8 +108,11 @@ def test_weights_holding_non_finite_values_are_refused(tmp_path, value):
     bad = tmp_path / "bad.pt"
     export_weights(bad, shipped["branches"], shipped["metadata"])
     frame = _oidn_style_input(tmp_path)
-    refused(run("denoise", str(frame), "--weights", str(bad)), f"{bad}: diffuse generator weights hold ",
-            f"non-finite value(s) (NaN or Inf) in tensor {name}")
+    refused(
+        run("denoise", str(frame), "--weights", str(bad)),
+        f"{bad}: diffuse generator weights hold ",
+        f"non-finite value(s) (NaN or Inf) in tensor {name}",
+    )
     assert not (tmp_path / "frame.denoised.exr").exists()
 
 
@@ -116,8 +125,10 @@ def test_two_inputs_of_a_batch_never_write_the_same_output(tmp_path):
     assert not (tmp_path / "frame.denoised.exr").exists()
     earlier = tmp_path / "frame.denoised.exr"
     shutil.copy(colour, earlier)  # an input whose name is another input's output
-    refused(run("denoise", str(colour), str(earlier), "--weights", str(SHIPPED)),
-            f"{earlier}: the output for {colour} is also an input of this batch")
+    refused(
+        run("denoise", str(colour), str(earlier), "--weights", str(SHIPPED)),
+        f"{earlier}: the output for {colour} is also an input of this batch",
+    )
     assert earlier.read_bytes() == colour.read_bytes()
 
 
@@ -129,6 +140,7 @@ def test_two_stores_in_one_folder_get_their_own_contact_sheets_in_the_workdir(tm
 
 # ---- a file system that refuses a write --------------------------------------------------------------------
 
+
 def test_denoise_beside_a_read_only_input_and_a_batch_that_goes_on(tmp_path):
     good = [_oidn_style_input(_folder(tmp_path / name)) for name in ("a", "c")]
     locked = _oidn_style_input(_folder(tmp_path / "b"))
@@ -138,8 +150,12 @@ def test_denoise_beside_a_read_only_input_and_a_batch_that_goes_on(tmp_path):
         assert any(reason in out.stderr for reason in WRITE_REFUSED), out.stderr
         out = run("denoise", str(good[0]), str(locked), str(good[1]), "--weights", str(SHIPPED))
     written = [path.with_name("frame.denoised.exr") for path in good]
-    refused(out, "1 of 3 inputs not denoised", f"{locked.with_name('frame.denoised.exr')}: cannot be written (",
-            f"written: {written[0]}, {written[1]}")
+    refused(
+        out,
+        "1 of 3 inputs not denoised",
+        f"{locked.with_name('frame.denoised.exr')}: cannot be written (",
+        f"written: {written[0]}, {written[1]}",
+    )
     assert all(path.is_file() for path in written)
     assert sorted(p.name for p in locked.parent.iterdir()) == ["frame.alb.exr", "frame.hdr.exr", "frame.nrm.exr"]
 
@@ -168,16 +184,23 @@ def test_a_training_checkpoint_onto_a_full_disk(finished_run):
 
 def test_a_read_only_or_file_valued_workdir(tmp_path):
     workdir = _folder(tmp_path / "w")
-    tiny = ["run.scheduler=sync", "corpus.n_scenes=1", "render.resolution=[32, 32]", "render.spp=[2]",
-            "render.reference_spp=4"]
+    tiny = [
+        "run.scheduler=sync",
+        "corpus.n_scenes=1",
+        "render.resolution=[32, 32]",
+        "render.spp=[2]",
+        "render.reference_spp=4",
+    ]
     with read_only(workdir):
         out = run("render", *flags([f"run.workdir='{workdir}'", *tiny]))
     refused(out, str(workdir))
     assert any(reason in out.stderr for reason in WRITE_REFUSED), out.stderr
     file = tmp_path / "file"
     file.write_text("not a folder")
-    refused(run("render", *flags([f"run.workdir='{file}'", *tiny])),
-            f"config key 'run.workdir': {file} is a file; it must name a folder")
+    refused(
+        run("render", *flags([f"run.workdir='{file}'", *tiny])),
+        f"config key 'run.workdir': {file} is a file; it must name a folder",
+    )
 
 
 def test_an_invalid_zarr_json_at_the_store_root(tmp_path):
@@ -190,12 +213,19 @@ def test_an_invalid_zarr_json_at_the_store_root(tmp_path):
 
 # ---- values and names that lead nowhere ---------------------------------------------------------------------
 
-@pytest.mark.parametrize("override, message", [
-    ("render.resolution=[200000, 200000]", "config key 'render.resolution': width and height must be in 1..16384"),
-    ("tile.split=[inf, 0, 0]", "config key 'tile.split[0]': must be a finite number, got inf"),
-    ("tile.split=[0.5, 0.5, 0.5]", "config key 'tile.split': the train, val and test fractions must be >= 0 and "
-                                   "sum to 1, got [0.5, 0.5, 0.5] (sum 1.5)"),
-])
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("render.resolution=[200000, 200000]", "config key 'render.resolution': width and height must be in 1..16384"),
+        ("tile.split=[inf, 0, 0]", "config key 'tile.split[0]': must be a finite number, got inf"),
+        (
+            "tile.split=[0.5, 0.5, 0.5]",
+            "config key 'tile.split': the train, val and test fractions must be >= 0 and "
+            "sum to 1, got [0.5, 0.5, 0.5] (sum 1.5)",
+        ),
+    ],
+)
 def test_config_values_that_would_fail_later_are_named_now(override, message):
     with pytest.raises(ConfigError) as caught:
         load_config(None, [override])
@@ -204,8 +234,10 @@ def test_config_values_that_would_fail_later_are_named_now(override, message):
 
 
 def test_cache_clear_of_a_stage_it_does_not_know(tmp_path):
-    refused(run("cache", "--clear", "--stage", "renders", "--set", f"run.workdir='{tmp_path}'"),
-            "--stage 'renders': not a cached stage; the stages are render, tile")
+    refused(
+        run("cache", "--clear", "--stage", "renders", "--set", f"run.workdir='{tmp_path}'"),
+        "--stage 'renders': not a cached stage; the stages are render, tile",
+    )
 
 
 @pytest.mark.parametrize("spec", ["=", "name=", "=path.pt", ""])
@@ -231,9 +263,17 @@ def test_a_malicious_pickle_is_called_what_it_is(tmp_path):
 
 
 def test_a_damaged_cached_render_is_rendered_again(tmp_path):
-    items = [f"run.workdir='{tmp_path}'", "run.scheduler=sync", "corpus.n_scenes=1", "render.resolution=[32, 32]",
-             "render.spp=[2]", "render.reference_spp=4", "tile.patch_size=32", "tile.crops_per_scene=1",
-             "tile.split=[1.0, 0.0, 0.0]"]
+    items = [
+        f"run.workdir='{tmp_path}'",
+        "run.scheduler=sync",
+        "corpus.n_scenes=1",
+        "render.resolution=[32, 32]",
+        "render.spp=[2]",
+        "render.reference_spp=4",
+        "tile.patch_size=32",
+        "tile.crops_per_scene=1",
+        "tile.split=[1.0, 0.0, 0.0]",
+    ]
     out = run("render", *flags(items))
     assert out.returncode == 0, out.stderr
     first, second = sorted((tmp_path / "cache" / "render").glob("*/render.json"))
@@ -257,8 +297,12 @@ def test_a_denoise_batch_killed_while_writing_leaves_no_partial_file(tmp_path):
         for role, lo in (("hdr", 0.0), ("alb", 0.0), ("nrm", 0.0)):  # normals facing the camera
             write_exr(tmp_path / f"f{i}.{role}.exr", {"": rng.uniform(lo, 1, (512, 512, 3)).astype(np.float32)})
         frames.append(tmp_path / f"f{i}.hdr.exr")
-    process = subprocess.Popen([ADMC, "denoise", *map(str, frames), "--weights", str(SHIPPED)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [ADMC, "denoise", *map(str, frames), "--weights", str(SHIPPED)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     caught = False
     while process.poll() is None and not caught:
         caught = any(name.endswith(".tmp.exr") for name in os.listdir(tmp_path))

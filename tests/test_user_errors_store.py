@@ -1,6 +1,7 @@
 """User errors around the patch store, as `admc-pipe` reports them: a damaged chunk, a patch size the
 images cannot hold or the critic cannot take, a leftover empty store, a split that leaves training
 without scenes. Each is one message naming the store/scene/array or config key, no traceback."""
+
 import subprocess
 from pathlib import Path
 
@@ -22,7 +23,7 @@ def flip_bytes(file: Path, offset: int, count: int = 8) -> None:
     """Invert `count` bytes at `offset` (negative: from the end), as a failing disk or a bad copy would."""
     data = bytearray(file.read_bytes())
     start = offset % len(data)
-    data[start:start + count] = bytes(b ^ 0xFF for b in data[start:start + count])
+    data[start : start + count] = bytes(b ^ 0xFF for b in data[start : start + count])
     file.write_bytes(bytes(data))
 
 
@@ -70,6 +71,7 @@ def test_train_tiles_a_damaged_scene_again_before_training_and_says_so(tiny):
     assert f"re-tiled damaged scenes from their cached renders: train/{scene} (ref_diffuse)" in out.stdout
     assert patches.damaged_arrays(store, "train", scene) == []
 
+
 def test_training_on_an_undecodable_chunk_names_store_scene_and_array(tiny, tmp_path):
     from admc.model.training.trainer import train
     from dataclasses import replace
@@ -88,9 +90,10 @@ def test_a_patch_larger_than_the_render_is_refused_before_anything_is_created(tm
     overrides = tiny_store_overrides(tmp_path / "w", size=32, patch=64)
     out = admc("dataset", overrides=overrides)
     assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert ("config key 'tile.patch_size': 64 is larger than the image, render.resolution is 32x32; use at most 32 "
-            "or raise render.resolution"
-            in " ".join(out.stderr.split()))
+    assert (
+        "config key 'tile.patch_size': 64 is larger than the image, render.resolution is 32x32; use at most 32 "
+        "or raise render.resolution" in " ".join(out.stderr.split())
+    )
     assert not (tmp_path / "w").exists(), "nothing rendered, no store created"
 
 
@@ -98,12 +101,21 @@ def test_a_patch_larger_than_an_xml_film_names_the_scene_file(tmp_path):
     from test_scenes import write_kitchen_scene
 
     xml = write_kitchen_scene(tmp_path / "my_scenes")  # a 40x30 film
-    out = admc("dataset", overrides=[f"run.workdir='{tmp_path / 'w'}'", "corpus.n_scenes=0",
-                                     f"corpus.xml_dirs=['{xml.parent}']", "corpus.xml_resolution='film'",
-                                     "tile.patch_size=32"])
+    out = admc(
+        "dataset",
+        overrides=[
+            f"run.workdir='{tmp_path / 'w'}'",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{xml.parent}']",
+            "corpus.xml_resolution='film'",
+            "tile.patch_size=32",
+        ],
+    )
     assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert (f"config key 'tile.patch_size': 32 is larger than the image, scene {xml} renders at its film's 40x30 "
-            "(corpus.xml_resolution = film); set corpus.xml_resolution = render" in " ".join(out.stderr.split()))
+    assert (
+        f"config key 'tile.patch_size': 32 is larger than the image, scene {xml} renders at its film's 40x30 "
+        "(corpus.xml_resolution = film); set corpus.xml_resolution = render" in " ".join(out.stderr.split())
+    )
     assert not (tmp_path / "w").exists()
 
 
@@ -129,8 +141,9 @@ def test_an_empty_store_left_by_a_failed_run_does_not_pin_its_patch_size(tmp_pat
 def test_a_patch_size_the_critic_cannot_take_is_refused_when_the_config_loads(tmp_path, command):
     out = admc(command, overrides=tiny_store_overrides(tmp_path / "w", size=32, patch=16))
     assert out.returncode == 2 and "Traceback" not in out.stderr
-    assert ("config key 'tile.patch_size': must be a multiple of 32 (the critic halves it 5 times), got 16"
-            in " ".join(out.stderr.split()))
+    assert "config key 'tile.patch_size': must be a multiple of 32 (the critic halves it 5 times), got 16" in " ".join(
+        out.stderr.split()
+    )
     assert not (tmp_path / "w").exists()
 
 
@@ -139,6 +152,8 @@ def test_train_refuses_a_split_without_validation_scenes_before_rendering(tmp_pa
     out = admc("train", overrides=overrides)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     message = " ".join(out.stderr.split())
-    assert ("config key 'tile.split': no scene of the 4-scene corpus (tile.split = [1.0, 0.0, 0.0], tile.seed = 17) "
-            "falls in the val split, which train.val_every = 100 validates on" in message)
+    assert (
+        "config key 'tile.split': no scene of the 4-scene corpus (tile.split = [1.0, 0.0, 0.0], tile.seed = 17) "
+        "falls in the val split, which train.val_every = 100 validates on" in message
+    )
     assert not (tmp_path / "w").exists()

@@ -3,6 +3,7 @@
 Each ends with one message naming the file (or address) and the problem, a non-zero exit and no
 traceback; everything that could be done is done and cached, so a rerun does only the rest.
 """
+
 import socket
 import subprocess
 import sys
@@ -24,16 +25,26 @@ def admc(*args: str) -> subprocess.CompletedProcess:
 
 def tiny(workdir: Path, scenes: Path, *extra: str) -> list[str]:
     """--set options: only the user's scenes, 32x32, 2 spp + a 4 spp reference, everything in train."""
-    settings = [f"run.workdir='{workdir}'", "run.scheduler=sync", "render.resolution=[32, 32]", "render.spp=[2]",
-                "render.reference_spp=4", "corpus.n_scenes=0", f"corpus.xml_dirs=['{scenes}']",
-                "tile.patch_size=32", "tile.crops_per_scene=2", "tile.split=[1.0, 0.0, 0.0]", *extra]
+    settings = [
+        f"run.workdir='{workdir}'",
+        "run.scheduler=sync",
+        "render.resolution=[32, 32]",
+        "render.spp=[2]",
+        "render.reference_spp=4",
+        "corpus.n_scenes=0",
+        f"corpus.xml_dirs=['{scenes}']",
+        "tile.patch_size=32",
+        "tile.crops_per_scene=2",
+        "tile.split=[1.0, 0.0, 0.0]",
+        *extra,
+    ]
     return [item for setting in settings for item in ("--set", setting)]
 
 
 def error_message(out: subprocess.CompletedProcess) -> str:
     assert out.returncode == 2, out.stdout + out.stderr
     assert "Traceback" not in out.stderr, out.stderr
-    return out.stderr[out.stderr.index("error: "):]
+    return out.stderr[out.stderr.index("error: ") :]
 
 
 def test_a_failed_render_is_listed_with_its_scene_file_and_a_rerun_renders_only_it(tmp_path):
@@ -47,9 +58,11 @@ def test_a_failed_render_is_listed_with_its_scene_file_and_a_rerun_renders_only_
     assert lines[0].startswith("error: 2 task(s) failed, 0 skipped") and "2 of 4 are published" in lines[0]
     assert len(lines) == 3
     for line, level in zip(lines[1:], ("2 spp", "reference 4 spp")):
-        assert line.startswith(f"  render 'xml-bad @ {level}' ({bad}): Mitsuba could not load the scene: <shape> "
-                               f'naming {bad.parent / "meshes" / "floor.obj"}: failed to instantiate shape plugin '
-                               'of type "obj": ')
+        assert line.startswith(
+            f"  render 'xml-bad @ {level}' ({bad}): Mitsuba could not load the scene: <shape> "
+            f"naming {bad.parent / 'meshes' / 'floor.obj'}: failed to instantiate shape plugin "
+            'of type "obj": '
+        )
     assert (tmp_path / "work" / "renders" / "xml-good" / "reference.exr").is_file(), "the good scene is rendered"
 
     (bad.parent / "meshes" / "floor.obj").write_text(QUAD_OBJ)
@@ -70,7 +83,8 @@ def test_a_broken_xml_in_a_scene_folder_leaves_out_only_that_scene(tmp_path, var
     assert message.splitlines() == [
         "error: 2 scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
         f"  {malformed}: malformed XML (mismatched tag: line 17, column 2)",
-        f"  {missing}: referenced file 'meshes/floor.obj' not found (looked in {missing.parent})"]
+        f"  {missing}: referenced file 'meshes/floor.obj' not found (looked in {missing.parent})",
+    ]
     assert patches.list_scenes(work / "patches.zarr", "train") == ["xml-good"]
 
     malformed.write_text(SCENE_XML)
@@ -128,9 +142,14 @@ def test_an_included_file_names_meshes_on_the_scene_files_search_path(tmp_path, 
     scene = tmp_path / "kitchen.xml"
     (tmp_path / "parts").mkdir()
     (tmp_path / "parts" / "floor.xml").write_text(
-        '<scene version="3.0.0"><shape type="obj"><string name="filename" value="meshes/floor.obj"/></shape></scene>')
-    scene.write_text(SCENE_XML.replace('<shape type="obj"><string name="filename" value="meshes/floor.obj"/>'
-                                       '<bsdf type="diffuse"/></shape>', '<include filename="parts/floor.xml"/>'))
+        '<scene version="3.0.0"><shape type="obj"><string name="filename" value="meshes/floor.obj"/></shape></scene>'
+    )
+    scene.write_text(
+        SCENE_XML.replace(
+            '<shape type="obj"><string name="filename" value="meshes/floor.obj"/><bsdf type="diffuse"/></shape>',
+            '<include filename="parts/floor.xml"/>',
+        )
+    )
     (spec,) = xml_corpus([str(tmp_path)], (32, 32))
     assert len(load_scene(spec).shapes()) == len(mi.load_file(str(scene)).shapes()) == 2
     (tmp_path / "parts" / "meshes").mkdir()

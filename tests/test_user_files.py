@@ -1,4 +1,5 @@
 """Reading users' EXRs for `denoise` (both layouts, every error) and writing the result, with real files."""
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -67,8 +68,7 @@ def test_multilayer_exr_round_trips_through_the_denoiser(tmp_path, denoiser):
     out = tmp_path / "out" / "render.denoised.exr"
     write_denoised(out, result, source=loaded)
     back = OpenEXR.File(str(out), separate_channels=True).channels()
-    assert set(back) == {"R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B",
-                         "specular.R", "specular.G", "specular.B"}
+    assert set(back) == {"R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"}
     image = np.stack([back[c].pixels for c in "RGB"], axis=-1)
     assert image.shape == (H, W, 3) and image.dtype == np.float32
     np.testing.assert_array_equal(image, result.image)

@@ -3,6 +3,7 @@
 Rendering, EXR files, tiling, the transforms, inference and the OIDN calls all read their layer names
 and rules from here, so a buffer cannot be valid on one path and repaired differently on another.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ RADIANCE_MAX = FP16_MAX
 """Linear radiance is clamped here (+Inf and huge fireflies alike), so every stored value also
 inverts to an FP16-representable linear value. Directly seen emitters above it are clipped."""
 
-VARIANCE_MAX = RADIANCE_MAX ** 2
+VARIANCE_MAX = RADIANCE_MAX**2
 """A variance buffer's bound: the variance of a radiance clamped at RADIANCE_MAX."""
 
 
@@ -27,6 +28,7 @@ class Layer:
     range. Where there is no high, +Inf also becomes `nan`: a depth without a finite distance is no
     hit, and an infinite pixel of the beauty has no value a baseline denoiser could spread.
     """
+
     channels: tuple[str, ...]
     low: float
     high: float | None
@@ -40,13 +42,13 @@ BEAUTY = ""
 """The final image as plain R, G, B channels (what viewers show first)."""
 
 LAYERS: dict[str, Layer] = {
-    BEAUTY: Layer(RGB, 0.0, None),                 # diffuse + specular: each may reach RADIANCE_MAX
+    BEAUTY: Layer(RGB, 0.0, None),  # diffuse + specular: each may reach RADIANCE_MAX
     "diffuse": _RADIANCE,
     "specular": _RADIANCE,
     "albedo": Layer(RGB, 0.0, 1.0),
     "normal": Layer(("X", "Y", "Z"), -1.0, 1.0),  # view space, unit length
-    "depth": Layer(("Z",), 0.0, None),             # distance to the first non-delta hit; 0: none
-    "coverage": Layer(("A",), 0.0, 1.0),           # share of the pixel's samples that hit a surface
+    "depth": Layer(("Z",), 0.0, None),  # distance to the first non-delta hit; 0: none
+    "coverage": Layer(("A",), 0.0, 1.0),  # share of the pixel's samples that hit a surface
     "diffuse_var": Layer(RGB, 0.0, VARIANCE_MAX),  # the variance of each pixel's mean, per branch
     "specular_var": Layer(RGB, 0.0, VARIANCE_MAX),
 }

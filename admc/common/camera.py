@@ -9,15 +9,16 @@ for a camera pitched 72 degrees up).
 A world-to-camera matrix names the camera; each renderer's camera frame differs from admc's by the
 sign of some axes, which `CAMERA_FRAMES` records.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 CAMERA_FRAMES = {
-    "admc": (1.0, 1.0, 1.0),      # x right, y up, z toward the viewer (also Blender's camera object frame)
-    "blender": (1.0, 1.0, 1.0),   # a Blender camera object looks down its local -z, y up
-    "cycles": (1.0, 1.0, -1.0),   # Cycles' camera space (its Denoising Normal): x right, y up, z forward
-    "pbrt": (1.0, 1.0, -1.0),     # pbrt-v4: x right, y up, z forward (left-handed)
+    "admc": (1.0, 1.0, 1.0),  # x right, y up, z toward the viewer (also Blender's camera object frame)
+    "blender": (1.0, 1.0, 1.0),  # a Blender camera object looks down its local -z, y up
+    "cycles": (1.0, 1.0, -1.0),  # Cycles' camera space (its Denoising Normal): x right, y up, z forward
+    "pbrt": (1.0, 1.0, -1.0),  # pbrt-v4: x right, y up, z forward (left-handed)
     "mitsuba": (-1.0, 1.0, -1.0),  # Mitsuba's sensor frame: x left, y up, z forward
 }
 """Per renderer camera frame, the signs that turn its axes into admc's."""
@@ -57,7 +58,7 @@ def facing_share(normal: np.ndarray, tolerance: float = 0.2) -> tuple[float, int
     centre only. World-space normals face every way (a wall behind a floor, a ceiling)."""
     n = np.asarray(normal, np.float32)
     h, w = n.shape[:2]
-    n = n[h // 4: h - h // 4, w // 4: w - w // 4].reshape(-1, 3)
+    n = n[h // 4 : h - h // 4, w // 4 : w - w // 4].reshape(-1, 3)
     has = np.linalg.norm(n, axis=1) > 0.5
     count = int(has.sum())
     if count == 0:

@@ -1,4 +1,5 @@
 """Which settings differ: the one comparison behind every "changed since" message."""
+
 from __future__ import annotations
 
 from typing import Any

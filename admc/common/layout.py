@@ -1,4 +1,5 @@
 """Names every layer agrees on: the branches, the feature channels as named slices, the float16 limit."""
+
 from __future__ import annotations
 
 BRANCHES = ("diffuse", "specular")

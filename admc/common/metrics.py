@@ -9,6 +9,7 @@ The evaluation scores NumPy images; training's validation scores batches of tens
 side with the NumPy ones so they cannot drift apart (tests/test_metrics.py compares them). HDR-FLIP has no twin and
 validation leaves it out: NVIDIA's implementation costs ~25x SSIM's time (benchmarks/bench_metrics.py).
 """
+
 from __future__ import annotations
 
 import functools
@@ -27,11 +28,13 @@ RELMSE_EPS = 1e-2
 GAMMA = 2.2
 PSNR_CAP_DB = 100.0
 SSIM_SIGMA = 1.5
-SSIM_RADIUS = 5                 # 11x11 window: int(3.5 * 1.5 + 0.5), as scikit-image and Wang et al. 2004
+SSIM_RADIUS = 5  # 11x11 window: int(3.5 * 1.5 + 0.5), as scikit-image and Wang et al. 2004
 SSIM_K1, SSIM_K2 = 0.01, 0.03
-LDR_RANGE = 255.0               # PSNR and SSIM run on 8-bit values 0..255
-NONFINITE_RULE = ("NaN and +-inf values in an image or its reference are replaced by 0 before every metric "
-                  "and counted; the count is reported next to the scores.")
+LDR_RANGE = 255.0  # PSNR and SSIM run on 8-bit values 0..255
+NONFINITE_RULE = (
+    "NaN and +-inf values in an image or its reference are replaced by 0 before every metric "
+    "and counted; the count is reported next to the scores."
+)
 
 
 def count_nonfinite(x: np.ndarray) -> int:
@@ -60,7 +63,7 @@ def relmse(x: np.ndarray, ref: np.ndarray) -> float:
     """
     _check_pair(x, ref)
     x, ref = finite(x), finite(ref)
-    return float(np.mean((x - ref) ** 2 / (ref ** 2 + RELMSE_EPS)))
+    return float(np.mean((x - ref) ** 2 / (ref**2 + RELMSE_EPS)))
 
 
 def reference_floor(variance: np.ndarray, ref: np.ndarray) -> float:
@@ -74,7 +77,7 @@ def reference_floor(variance: np.ndarray, ref: np.ndarray) -> float:
     """
     _check_pair(variance, ref)
     variance, ref = finite(variance), finite(ref)
-    return float(np.mean(np.maximum(variance, 0.0) / (ref ** 2 + RELMSE_EPS)))
+    return float(np.mean(np.maximum(variance, 0.0) / (ref**2 + RELMSE_EPS)))
 
 
 def to_ldr(x: np.ndarray) -> np.ndarray:
@@ -97,11 +100,11 @@ def psnr(x: np.ndarray, ref: np.ndarray) -> float:
     mse = np.mean((to_ldr(x).astype(np.float64) - to_ldr(ref).astype(np.float64)) ** 2)
     if mse == 0:
         return PSNR_CAP_DB
-    return float(min(10.0 * np.log10(LDR_RANGE ** 2 / mse), PSNR_CAP_DB))
+    return float(min(10.0 * np.log10(LDR_RANGE**2 / mse), PSNR_CAP_DB))
 
 
 def _gaussian_taps(radius: int) -> np.ndarray:
-    taps = np.exp(-0.5 * np.arange(-radius, radius + 1) ** 2 / SSIM_SIGMA ** 2)
+    taps = np.exp(-0.5 * np.arange(-radius, radius + 1) ** 2 / SSIM_SIGMA**2)
     return taps / taps.sum()
 
 
@@ -114,12 +117,12 @@ def _ssim_channel(a: np.ndarray, b: np.ndarray) -> float:
         return img
 
     mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a ** 2
-    var_b = blur(b * b) - mu_b ** 2
+    var_a = blur(a * a) - mu_a**2
+    var_b = blur(b * b) - mu_b**2
     cov = blur(a * b) - mu_a * mu_b
     c1, c2 = (SSIM_K1 * LDR_RANGE) ** 2, (SSIM_K2 * LDR_RANGE) ** 2
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
-    inner = s[radii[0]:s.shape[0] - radii[0], radii[1]:s.shape[1] - radii[1]]
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    inner = s[radii[0] : s.shape[0] - radii[0], radii[1] : s.shape[1] - radii[1]]
     return float(inner.mean(dtype=np.float64))
 
 
@@ -156,13 +159,13 @@ def to_ldr_torch(x: Tensor) -> Tensor:
 def relmse_torch(x: Tensor, ref: Tensor) -> Tensor:
     """relmse of each sample of (N, C, H, W) linear images."""
     x, ref = _finite_torch(x), _finite_torch(ref)
-    return ((x - ref) ** 2 / (ref ** 2 + RELMSE_EPS)).flatten(1).mean(1)
+    return ((x - ref) ** 2 / (ref**2 + RELMSE_EPS)).flatten(1).mean(1)
 
 
 def psnr_torch(x: Tensor, ref: Tensor) -> Tensor:
     """psnr of each sample of (N, C, H, W) linear images, capped at PSNR_CAP_DB."""
     mse = ((to_ldr_torch(x) - to_ldr_torch(ref)) ** 2).flatten(1).mean(1)
-    db = 10 * torch.log10(LDR_RANGE ** 2 / mse.clamp(min=1e-30))
+    db = 10 * torch.log10(LDR_RANGE**2 / mse.clamp(min=1e-30))
     return torch.where(mse == 0, torch.full_like(db, PSNR_CAP_DB), db.clamp(max=PSNR_CAP_DB))
 
 
@@ -179,11 +182,11 @@ def ssim_map_torch(a: Tensor, b: Tensor) -> Tensor:
         return F.conv2d(F.conv2d(img, across, groups=channels), down, groups=channels)
 
     mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a ** 2
-    var_b = blur(b * b) - mu_b ** 2
+    var_a = blur(a * a) - mu_a**2
+    var_b = blur(b * b) - mu_b**2
     cov = blur(a * b) - mu_a * mu_b
     c1, c2 = (SSIM_K1 * LDR_RANGE) ** 2, (SSIM_K2 * LDR_RANGE) ** 2
-    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
 
 
 def one_minus_ssim_torch(x: Tensor, ref: Tensor) -> Tensor:
@@ -246,6 +249,7 @@ def _flip_white_exposure() -> float:
 @dataclass(frozen=True)
 class Metric:
     """A column of Table 1: how to compute it from (x, ref), which direction is better, its definition."""
+
     key: str
     label: str
     compute: Callable[[np.ndarray, np.ndarray], float]

@@ -2,6 +2,7 @@
 
 Both go through `denoise`, so they run OIDN the same way and differ only in the quality each asks for.
 """
+
 from __future__ import annotations
 
 import numpy as np

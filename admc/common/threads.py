@@ -1,4 +1,5 @@
 """torch's OpenMP pool, kept out of the way of other engines' threads."""
+
 from __future__ import annotations
 
 import contextlib

@@ -10,6 +10,7 @@ one call, and its time includes OIDN's.
 A dim image is scaled up for the networks and its output scaled back, and the dark regions of any
 image are taken from a second pass at a higher exposure (exposure.py).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -82,20 +83,26 @@ class FullImageDenoiser:
     Implements pipeline.evaluation.baselines.Denoiser (name, device, denoise, synchronize).
     """
 
-    def __init__(self, diffuse: nn.Module, specular: nn.Module | None,
-                 options: DenoiserOptions = DenoiserOptions()) -> None:
+    def __init__(
+        self, diffuse: nn.Module, specular: nn.Module | None, options: DenoiserOptions = DenoiserOptions()
+    ) -> None:
         self.options = options
         self.torch_device = torch.device(options.device)
         if self.torch_device.type == "cuda" and not torch.cuda.is_available():
-            raise RuntimeError(f"FullImageDenoiser: device {str(options.device)!r} asked for, but torch sees no CUDA GPU")
+            raise RuntimeError(
+                f"FullImageDenoiser: device {str(options.device)!r} asked for, but torch sees no CUDA GPU"
+            )
         engine = resolve_engine(options.engine, self.torch_device)
         self.dtype = options.dtype or default_precision(engine, self.torch_device)
         check_engine(engine, self.torch_device, self.dtype)
         if options.compile and engine != "torch":
             raise ValueError(f"FullImageDenoiser: compile is torch.compile, engine {engine!r} compiles its own graph")
         self.base = getattr(getattr(diffuse, "config", None), "base", "noisy")
-        self.noise_branches = {branch for branch, g in (("diffuse", diffuse), ("specular", specular))
-                               if getattr(getattr(g, "config", None), "noise_input", False)}
+        self.noise_branches = {
+            branch
+            for branch, g in (("diffuse", diffuse), ("specular", specular))
+            if getattr(getattr(g, "config", None), "noise_input", False)
+        }
         """The branches whose generator reads its noise map (model.noise_input) as a last feature channel."""
         self.generators = {"diffuse": self._prepare(diffuse)}
         if specular is not None:
@@ -107,8 +114,10 @@ class FullImageDenoiser:
                 raise ValueError("FullImageDenoiser: overlap must be given for modules that are not admc Generators")
             overlap = radius
         if overlap < radius:
-            raise ValueError(f"FullImageDenoiser: overlap {overlap} is below the receptive field radius {radius} "
-                             f"of the generator; tiles would not match the untiled image (visible seams)")
+            raise ValueError(
+                f"FullImageDenoiser: overlap {overlap} is below the receptive field radius {radius} "
+                f"of the generator; tiles would not match the untiled image (visible seams)"
+            )
         self.alignment = max(getattr(g, "alignment", 1) for g in self.generators.values())
         if options.compile:
             self.generators = {branch: torch.compile(g) for branch, g in self.generators.items()}
@@ -120,10 +129,13 @@ class FullImageDenoiser:
         tiles are then row copies, not transposes."""
         self.tile = options.tile or default_tile(self.torch_device, overlap, engine)
         self.overlap = overlap
-        self.device = (_device_description(self.torch_device) + f", {engine} {precision_name(self.dtype)}"
-                       + (f", ensemble of {options.ensemble}" if options.ensemble > 1 else "")
-                       + (", dark pass" if options.dark_pass else "")
-                       + (", keeps resolved input" if options.keep_resolved else ""))
+        self.device = (
+            _device_description(self.torch_device)
+            + f", {engine} {precision_name(self.dtype)}"
+            + (f", ensemble of {options.ensemble}" if options.ensemble > 1 else "")
+            + (", dark pass" if options.dark_pass else "")
+            + (", keeps resolved input" if options.keep_resolved else "")
+        )
         self.name, self.source = options.name or "admc", options.source
         self.normalize_exposure = options.normalize_exposure
         self.dark_pass = options.dark_pass
@@ -131,7 +143,9 @@ class FullImageDenoiser:
         self.keep_resolved = options.keep_resolved
         self.oidn_blend = dict(options.oidn_blend or {})
         if self.oidn_blend and self.base != "noisy":
-            raise ValueError("FullImageDenoiser: an OIDN blend is for admc's own output (base 'noisy'), not a refiner's")
+            raise ValueError(
+                "FullImageDenoiser: an OIDN blend is for admc's own output (base 'noisy'), not a refiner's"
+            )
         if self.oidn_blend:
             self.device += ", blended with OIDN"
 
@@ -163,10 +177,14 @@ class FullImageDenoiser:
         if missing:
             raise MissingVarianceError(
                 f"denoiser input lacks layer(s) {', '.join(missing)}, which {self.source or 'these weights'} read "
-                "(model.noise_input: the variance of each pixel's mean, as `admc-pipe render` writes)")
+                "(model.noise_input: the variance of each pixel's mean, as `admc-pipe render` writes)"
+            )
         run_specular = "specular" in layers and "specular" in self.generators
-        reads = tuple(f"{b}_var" for b in ("diffuse", "specular")[:1 + run_specular]
-                      if b in self.noise_branches or (self.keep_resolved and f"{b}_var" in layers))
+        reads = tuple(
+            f"{b}_var"
+            for b in ("diffuse", "specular")[: 1 + run_specular]
+            if b in self.noise_branches or (self.keep_resolved and f"{b}_var" in layers)
+        )
         clean, sanitized = sanitize_layers(layers, reads)
         run_specular = "specular" in clean and "specular" in self.generators
         gain = exposure_gain(_beauty(clean["diffuse"], clean.get("specular"))) if self.normalize_exposure else 1.0
@@ -193,17 +211,30 @@ class FullImageDenoiser:
         if self.keep_resolved:
             diffuse, specular, resolved_share = _keep_resolved(clean, diffuse, specular, run_specular)
         return DenoiseResult(
-            image=_beauty(diffuse, specular), diffuse=diffuse, specular=specular,
-            branches=("diffuse", "specular")[:1 + run_specular],
-            specular_passed_through="specular" in clean and not run_specular, sanitized=sanitized,
-            nonfinite_outputs=sum(p.nonfinite for p in passes), tiles=passes[0].tiles,
-            network_seconds=sum(p.network_seconds for p in passes), base_seconds=base_seconds,
-            exposure_gain=gain, dark_share=dark_share, resolved_share=resolved_share,
+            image=_beauty(diffuse, specular),
+            diffuse=diffuse,
+            specular=specular,
+            branches=("diffuse", "specular")[: 1 + run_specular],
+            specular_passed_through="specular" in clean and not run_specular,
+            sanitized=sanitized,
+            nonfinite_outputs=sum(p.nonfinite for p in passes),
+            tiles=passes[0].tiles,
+            network_seconds=sum(p.network_seconds for p in passes),
+            base_seconds=base_seconds,
+            exposure_gain=gain,
+            dark_share=dark_share,
+            resolved_share=resolved_share,
             seconds=time.perf_counter() - start,
         )
 
-    def _pass(self, clean: dict[str, np.ndarray], feats: Tensor, gain: float, run_specular: bool,
-              region: tuple[slice, slice] = WHOLE_IMAGE) -> _Pass:
+    def _pass(
+        self,
+        clean: dict[str, np.ndarray],
+        feats: Tensor,
+        gain: float,
+        run_specular: bool,
+        region: tuple[slice, slice] = WHOLE_IMAGE,
+    ) -> _Pass:
         """The networks on the radiance times `gain`, their output divided by it: linear, in the input's units.
 
         Only the image's `region` (rows, columns) comes out. The networks see that crop of the inputs, so
@@ -212,7 +243,7 @@ class FullImageDenoiser:
         whole image, as in a whole pass."""
         exposed = {name: clean[name] * np.float32(gain) for name in ("diffuse", "specular") if name in clean}
         base_start = time.perf_counter()
-        bases = self._bases({**clean, **exposed}, ("diffuse", "specular")[:1 + run_specular], region)
+        bases = self._bases({**clean, **exposed}, ("diffuse", "specular")[: 1 + run_specular], region)
         base_seconds = time.perf_counter() - base_start
         albedo = clean["albedo"][region]
         inputs = {"diffuse": diffuse_forward(exposed["diffuse"][region], albedo)}
@@ -249,23 +280,34 @@ class FullImageDenoiser:
         tiles = math.ceil(height / self.tile) * math.ceil(width / self.tile)
         return _Pass(diffuse, specular, nonfinite, tiles, network_seconds, base_seconds)
 
-    def _with_noise(self, branch: str, feats: Tensor, clean: dict[str, np.ndarray], exposed: dict[str, np.ndarray],
-                    gain: float, region: tuple[slice, slice]) -> Tensor:
+    def _with_noise(
+        self,
+        branch: str,
+        feats: Tensor,
+        clean: dict[str, np.ndarray],
+        exposed: dict[str, np.ndarray],
+        gain: float,
+        region: tuple[slice, slice],
+    ) -> Tensor:
         """The features a branch's generator reads: + its noise map for model.noise_input, from the exposed
         radiance (a variance scales with the square of the exposure), over `region`."""
         if branch not in self.noise_branches:
             return feats
         variance = clean[f"{branch}_var"][region] * np.float32(gain) ** 2
-        noise = (diffuse_noise(variance, exposed["diffuse"][region], clean["albedo"][region]) if branch == "diffuse"
-                 else specular_noise(variance, exposed["specular"][region]))
+        noise = (
+            diffuse_noise(variance, exposed["diffuse"][region], clean["albedo"][region])
+            if branch == "diffuse"
+            else specular_noise(variance, exposed["specular"][region])
+        )
         return torch.cat([feats, self._tensor(noise)], dim=1).contiguous(memory_format=self.memory_format)
 
     def _tensor(self, hwc: np.ndarray) -> Tensor:
         t = torch.from_numpy(np.ascontiguousarray(hwc)).permute(2, 0, 1).unsqueeze(0).to(self.torch_device)
         return t.contiguous(memory_format=self.memory_format)
 
-    def _bases(self, clean: dict[str, np.ndarray], branches: tuple[str, ...],
-               region: tuple[slice, slice]) -> dict[str, Tensor]:
+    def _bases(
+        self, clean: dict[str, np.ndarray], branches: tuple[str, ...], region: tuple[slice, slice]
+    ) -> dict[str, Tensor]:
         """A refiner's inputs from OIDN on the whole image, cropped to `region`, per branch it runs, in that
         branch's log domain; {} for base "noisy"."""
         if self.base == "noisy":
@@ -284,8 +326,14 @@ class FullImageDenoiser:
             plans, calls = [], []  # plans: (branch, its tiles' windows, its turned input) in the calls' order
             for branch, (generator, noisy, feats, base) in jobs.items():
                 turned = apply(noisy, code)
-                windows, tiles = tile_calls(turned, apply(feats, code, normals=True), self.tile, self.overlap,
-                                            self.alignment, None if base is None else apply(base, code))
+                windows, tiles = tile_calls(
+                    turned,
+                    apply(feats, code, normals=True),
+                    self.tile,
+                    self.overlap,
+                    self.alignment,
+                    None if base is None else apply(base, code),
+                )
                 plans.append((branch, windows, turned))
                 calls += [(generator, tile) for tile in tiles]
             outputs = run_together(calls)
@@ -299,25 +347,31 @@ class FullImageDenoiser:
         return summed
 
 
-def _keep_resolved(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None,
-                   run_specular: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+def _keep_resolved(
+    clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None, run_specular: bool
+) -> tuple[np.ndarray, np.ndarray | None, float]:
     """Each denoised branch with a variance layer moved toward its input where that is resolved (resolved.py);
     returns the branches and the mean weight of the input over them."""
     value = _beauty(diffuse, specular)
     outputs = {"diffuse": diffuse, "specular": specular}
     shares = []
-    for branch in ("diffuse", "specular")[:1 + run_specular]:
+    for branch in ("diffuse", "specular")[: 1 + run_specular]:
         if f"{branch}_var" in clean:
             outputs[branch], share = keep_resolved(outputs[branch], clean[branch], clean[f"{branch}_var"], value)
             shares.append(share)
     return outputs["diffuse"], outputs["specular"], float(np.mean(shares)) if shares else 0.0
 
 
-def _blend_with_oidn(clean: dict[str, np.ndarray], diffuse: np.ndarray, specular: np.ndarray | None,
-                     run_specular: bool, shares: dict[str, float]) -> tuple[np.ndarray, np.ndarray | None]:
+def _blend_with_oidn(
+    clean: dict[str, np.ndarray],
+    diffuse: np.ndarray,
+    specular: np.ndarray | None,
+    run_specular: bool,
+    shares: dict[str, float],
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Each branch's output blended with OIDN's per-branch output (high, as a refiner's base: oidn_base.py):
     share * output + (1 - share) * OIDN, the share a fine-tune chose on its val patches (train.oidn_blend)."""
-    branches = ("diffuse", "specular")[:1 + run_specular]
+    branches = ("diffuse", "specular")[: 1 + run_specular]
     oidn = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)}, "oidn")
     out = {"diffuse": diffuse, "specular": specular}
     for branch in branches:
@@ -344,8 +398,9 @@ class _Pass:
     base_seconds: float
 
 
-def _keep_environment(outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray],
-                      coverage: np.ndarray) -> dict[str, np.ndarray]:
+def _keep_environment(
+    outputs: dict[str, np.ndarray], inputs: dict[str, np.ndarray], coverage: np.ndarray
+) -> dict[str, np.ndarray]:
     """Log-domain outputs with the input kept wherever coverage is 0.
 
     Every camera sample of such a pixel escaped to the environment without meeting a surface: it shows
@@ -383,21 +438,32 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
     nets, model, transform = read_networks(path)
     if transform != transform_spec():
         changed = differing_keys(transform, transform_spec())
-        raise CheckpointError(f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})")
+        raise CheckpointError(
+            f"{path}: trained with other data transforms than this code applies ({', '.join(changed)})"
+        )
     if "diffuse" not in nets:
         raise CheckpointError(f"{path}: has no diffuse branch")
     try:
         config = ModelSettings.from_saved(model)
         config.check()
     except (TypeError, ValueError) as exc:
-        raise CheckpointError(f"{path}: its model metadata {model} is not an architecture this code builds "
-                              f"({exc})") from None
+        raise CheckpointError(
+            f"{path}: its model metadata {model} is not an architecture this code builds ({exc})"
+        ) from None
     generators = {}
     for branch, state in nets.items():
         generator = build_generator(config)
-        load_network(generator, state["generator"], f"{path}: {branch} generator",
-                     "the architecture its own metadata describes")
+        load_network(
+            generator, state["generator"], f"{path}: {branch} generator", "the architecture its own metadata describes"
+        )
         generators[branch] = generator.eval()
-    return FullImageDenoiser(generators["diffuse"], generators.get("specular"),
-                             replace(options, name=options.name or COLUMN_NAMES[config.base], source=str(path),
-                                     oidn_blend=read_blend(path) if oidn_blend else None))
+    return FullImageDenoiser(
+        generators["diffuse"],
+        generators.get("specular"),
+        replace(
+            options,
+            name=options.name or COLUMN_NAMES[config.base],
+            source=str(path),
+            oidn_blend=read_blend(path) if oidn_blend else None,
+        ),
+    )

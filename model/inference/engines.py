@@ -6,6 +6,7 @@ wrap them unchanged. On the 2-core EPYC with AVX512-BF16, one branch of the smal
 1280x720 image took torch float32 2.47 s, torch bf16 0.88 s, ONNX Runtime float32 0.91 s, OpenVINO
 float32 0.72 s and OpenVINO bf16 0.31 s (STACK_NOTES.md; docs/engines.md).
 """
+
 from __future__ import annotations
 
 import threading
@@ -143,9 +144,12 @@ class OnnxGenerator:
         """`streams` infer requests of `model`, each on threads / streams of the threads. Several streams
         are not pinned to cores: each graph would pin its first stream to the first core, and the two
         branches' graphs, run at once, would share it (1.8x the time of one after the other)."""
-        config = {"INFERENCE_PRECISION_HINT": self._precision, "INFERENCE_NUM_THREADS": self._threads,
-                  "PERFORMANCE_HINT": "LATENCY" if streams == 1 else "THROUGHPUT",
-                  **({"NUM_STREAMS": streams, "ENABLE_CPU_PINNING": False} if streams > 1 else {})}
+        config = {
+            "INFERENCE_PRECISION_HINT": self._precision,
+            "INFERENCE_NUM_THREADS": self._threads,
+            "PERFORMANCE_HINT": "LATENCY" if streams == 1 else "THROUGHPUT",
+            **({"NUM_STREAMS": streams, "ENABLE_CPU_PINNING": False} if streams > 1 else {}),
+        }
         compiled = self._core.compile_model(model, "CPU", config)
         return [compiled.create_infer_request() for _ in range(streams)]
 
@@ -156,8 +160,9 @@ class OnnxGenerator:
         requests = self._sized.pop(key, None)
         if requests is None:
             model = self._model.clone()
-            model.reshape({i.get_any_name(): [1, i.get_partial_shape()[1].get_length(), height, width]
-                           for i in model.inputs})
+            model.reshape(
+                {i.get_any_name(): [1, i.get_partial_shape()[1].get_length(), height, width] for i in model.inputs}
+            )
             requests = self._compile(model, streams)
             if len(self._sized) >= OPENVINO_SIZES:
                 self._sized.pop(next(iter(self._sized)))
@@ -169,8 +174,9 @@ def run_together(calls: list[tuple[Callable, tuple[Tensor, ...]]]) -> Iterator[T
     """The outputs of `(generator, inputs)` calls, in order. Where every generator is an OpenVINO graph with
     a thread per stream, OPENVINO_STREAMS calls run at once, each in its generator's graph compiled for its
     size; otherwise the calls run in turn."""
-    together = len(calls) > 1 and all(isinstance(g, OnnxGenerator) and g.engine == "openvino"
-                                      and g._threads >= OPENVINO_STREAMS for g, _ in calls)
+    together = len(calls) > 1 and all(
+        isinstance(g, OnnxGenerator) and g.engine == "openvino" and g._threads >= OPENVINO_STREAMS for g, _ in calls
+    )
     if not together:
         yield from (generator(*inputs) for generator, inputs in calls)
         return
@@ -210,6 +216,9 @@ def default_precision(engine: str, device: torch.device) -> torch.dtype:
 
 def onnx_generators(generators: dict[str, nn.Module], engine: str, dtype: torch.dtype) -> dict[str, OnnxGenerator]:
     """Each generator exported to ONNX and loaded into `engine`, in memory (no file is written)."""
-    return {branch: OnnxGenerator(generator_graph(generator), engine, dtype,
-                                  getattr(getattr(generator, "config", None), "noise_input", False))
-            for branch, generator in generators.items()}
+    return {
+        branch: OnnxGenerator(
+            generator_graph(generator), engine, dtype, getattr(getattr(generator, "config", None), "noise_input", False)
+        )
+        for branch, generator in generators.items()
+    }

@@ -17,6 +17,7 @@ a large relative one. So a second pass denoises the dark region again at DARK_GA
 it. Measured with the shipped weights, ensemble 4, as multiples of one pass, at 4 / 16 / 64 spp
 (docs/design-decisions.md, "Dark pass").
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -75,8 +76,9 @@ def dark_weights(denoised: np.ndarray, gain: float, coverage: np.ndarray) -> np.
     log2 luminance between. 0 on environment pixels (coverage 0), which both passes leave as they are.
 
     Computed on the luminance times `gain`, so an image at any exposure gets the same weights."""
-    luminance = gaussian_filter(np.asarray(denoised, dtype=np.float32) @ LUMINANCE * np.float32(gain),
-                                DARK_SMOOTHING, mode="reflect")
+    luminance = gaussian_filter(
+        np.asarray(denoised, dtype=np.float32) @ LUMINANCE * np.float32(gain), DARK_SMOOTHING, mode="reflect"
+    )
     stops = np.log2(DARK_LEVEL / np.maximum(luminance, np.float32(1e-30)))
     weights = np.clip(stops / np.log2(DARK_GAIN), 0.0, 1.0)
     return np.where(coverage[..., 0] > 0, weights, 0.0)[..., None].astype(np.float32)
@@ -86,6 +88,7 @@ def dark_region(weights: np.ndarray, halo: int, alignment: int) -> tuple[slice, 
     """The rows and columns the dark pass must run on: the bounding box of the pixels with a weight, grown
     by the networks' halo and started on their grid (tiling.axis_windows' two conditions for exactness).
     A small object's shadows on a black background need a fraction of the image."""
+
     def span(lit: np.ndarray) -> slice:
         first, last = np.flatnonzero(lit)[[0, -1]]
         start = max(int(first) - halo, 0)

@@ -1,4 +1,5 @@
 """A denoiser's input layers checked, completed and sanitised: what every engine and pass reads."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +9,9 @@ from admc.common.buffers import DENOISER_LAYERS, LAYERS, MISSING_LAYERS, sanitiz
 REQUIRED_LAYERS = ("diffuse", "albedo", "normal")
 
 
-def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
-                    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
+def sanitize_layers(
+    layers: dict[str, np.ndarray], variances: tuple[str, ...] = ()
+) -> tuple[dict[str, np.ndarray], dict[str, dict[str, int]]]:
     """Check shapes, fill a missing depth/coverage (MISSING_LAYERS) and sanitize every layer, and the
     `variances` (names of buffers.VARIANCE_LAYERS: those weights with model.noise_input read; others are ignored).
 
@@ -23,8 +25,10 @@ def sanitize_layers(layers: dict[str, np.ndarray], variances: tuple[str, ...] = 
     for name in (*DENOISER_LAYERS, *variances):
         expected = (*size, len(LAYERS[name].channels))
         if name in layers and np.shape(layers[name]) != expected:
-            raise ValueError(f"denoiser input layer {name!r} has shape {np.shape(layers[name])}, "
-                             f"expected {expected} to match diffuse")
+            raise ValueError(
+                f"denoiser input layer {name!r} has shape {np.shape(layers[name])}, "
+                f"expected {expected} to match diffuse"
+            )
     if size[0] < 1 or size[1] < 1:
         raise ValueError(f"denoiser input is empty ({size[0]}x{size[1]})")
     filled = dict(layers)

@@ -10,6 +10,7 @@ Tiling (the stored bases, for tile.refiner_base) and inference (for the base its
 same function on the same sanitised layers, so training and denoising see identical bases; the base names
 each branch's OIDN quality (layout.BASE_QUALITIES).
 """
+
 from __future__ import annotations
 
 from importlib.metadata import version
@@ -23,8 +24,13 @@ from admc.common.layout import BASE_QUALITIES
 def describe(base: str) -> dict:
     """What produced the bases, stored with them: a refiner must see bases of the qualities it was trained
     on (whatever quality the evaluation's OIDN baseline runs at), and a later OIDN version gives others."""
-    return {"method": "oidn", "base": base, "quality": BASE_QUALITIES[base], "per_branch": True,
-            "pyoidn": version("pyoidn")}
+    return {
+        "method": "oidn",
+        "base": base,
+        "quality": BASE_QUALITIES[base],
+        "per_branch": True,
+        "pyoidn": version("pyoidn"),
+    }
 
 
 def oidn_bases(clean: dict[str, np.ndarray], base: str) -> dict[str, np.ndarray]:
@@ -36,5 +42,7 @@ def oidn_bases(clean: dict[str, np.ndarray], base: str) -> dict[str, np.ndarray]
     if "specular" in clean:
         bases["specular"] = oidn.denoise(clean["specular"], quality=quality["specular"])
     # OIDN's output is finite for finite input; negatives (ringing) are not radiance.
-    return {branch: np.clip(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
-            for branch, image in bases.items()}
+    return {
+        branch: np.clip(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+        for branch, image in bases.items()
+    }

@@ -8,6 +8,7 @@ a refiner, `base` (1, 3, H, W: OIDN's output of the branch, same log domain); ou
 clamp, environment pixels, tiling) is described in the JSON (`export_manifest`) so that a renderer can
 do it in its own code; docs/engines.md spells it out.
 """
+
 from __future__ import annotations
 
 import copy
@@ -40,8 +41,11 @@ INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "ba
 
 def input_names(generator: Generator) -> list[str]:
     """The graph's inputs, in the order its forward takes them: noisy, features, [noise], [base]."""
-    return (["noisy", "features"] + (["noise"] if generator.config.noise_input else [])
-            + (["base"] if generator.config.refines else []))
+    return (
+        ["noisy", "features"]
+        + (["noise"] if generator.config.noise_input else [])
+        + (["base"] if generator.config.refines else [])
+    )
 
 
 class _NoiseAsInput(nn.Module):
@@ -52,8 +56,9 @@ class _NoiseAsInput(nn.Module):
         super().__init__()
         self.generator = generator
 
-    def forward(self, noisy: torch.Tensor, features: torch.Tensor, noise: torch.Tensor,
-                base: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self, noisy: torch.Tensor, features: torch.Tensor, noise: torch.Tensor, base: torch.Tensor | None = None
+    ) -> torch.Tensor:
         return self.generator(noisy, torch.cat([features, noise], dim=1), base)
 
 
@@ -77,13 +82,26 @@ def generator_graph(generator: Generator) -> bytes:
     graph = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the tracer's warnings about shape checks turned into constants
-        torch.onnx.export(module, example, graph, input_names=names, output_names=["denoised"],
-                          dynamic_axes=dynamic, opset_version=OPSET, dynamo=False)
+        torch.onnx.export(
+            module,
+            example,
+            graph,
+            input_names=names,
+            output_names=["denoised"],
+            dynamic_axes=dynamic,
+            opset_version=OPSET,
+            dynamo=False,
+        )
     return graph.getvalue()
 
 
-def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: dict[str, float],
-                    missing: dict[str, float], oidn_blend: dict[str, float] | None = None) -> dict:
+def export_manifest(
+    generators: dict[str, nn.Module],
+    transform: dict,
+    log_max: dict[str, float],
+    missing: dict[str, float],
+    oidn_blend: dict[str, float] | None = None,
+) -> dict:
     """What a renderer must run around the graphs, JSON-ready (see docs/engines.md); `missing` is the constant
     a layer the input lacks is filled with (depth, coverage). examples/onnx_denoise.py follows it and
     nothing else, and tests/test_export_consumer.py checks that it gives what `admc-pipe denoise` gives."""
@@ -101,14 +119,24 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
         "inputs": {
             "noisy": "the branch's radiance in its log domain (transform.diffuse or transform.specular), RGB",
             "features": list(FEATURE_CHANNELS),
-            **({"noise": "the branch's noise map (1 channel) from the render's variance of each pixel's mean: "
-                         "log1p(std / noise_std_unit) / log1p(1 / noise_std_unit), std = mean over RGB of "
-                         "sqrt(variance) / (radiance + scale), scale = albedo + eps for diffuse, 1 for specular "
-                         "(radiance and variance at the exposure the network sees)"}
-               if first.config.noise_input else {}),
-            **({"base": "OIDN's output of the branch (hdr; diffuse with albedo + normal, specular alone) at "
-                        "base_quality, same log domain, RGB"}
-               if first.config.refines else {}),
+            **(
+                {
+                    "noise": "the branch's noise map (1 channel) from the render's variance of each pixel's mean: "
+                    "log1p(std / noise_std_unit) / log1p(1 / noise_std_unit), std = mean over RGB of "
+                    "sqrt(variance) / (radiance + scale), scale = albedo + eps for diffuse, 1 for specular "
+                    "(radiance and variance at the exposure the network sees)"
+                }
+                if first.config.noise_input
+                else {}
+            ),
+            **(
+                {
+                    "base": "OIDN's output of the branch (hdr; diffuse with albedo + normal, specular alone) at "
+                    "base_quality, same log domain, RGB"
+                }
+                if first.config.refines
+                else {}
+            ),
         },
         "layout": "NCHW float32, N = 1",
         "output": {
@@ -127,21 +155,28 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "luminance": [float(w) for w in exposure.LUMINANCE],
             "lit": exposure.LIT,
             "rule": "gain k = 2^n multiplies the sanitised diffuse and specular (and, for the noise map, the "
-                    "variances by k^2) before everything else, OIDN's bases included, and divides both denoised "
-                    "branches after the inverse. "
-                    "level = exp(mean(log(L))) over the pixels of diffuse + specular whose luminance L = "
-                    "luminance . RGB exceeds lit; k = 1 if there are none or level >= trained_brightness, else "
-                    "n = max(0, min(round(log2(trained_brightness / level)), floor(log2(radiance_max / peak)))), "
-                    "peak = the largest value of diffuse + specular (if > 0)",
+            "variances by k^2) before everything else, OIDN's bases included, and divides both denoised "
+            "branches after the inverse. "
+            "level = exp(mean(log(L))) over the pixels of diffuse + specular whose luminance L = "
+            "luminance . RGB exceeds lit; k = 1 if there are none or level >= trained_brightness, else "
+            "n = max(0, min(round(log2(trained_brightness / level)), floor(log2(radiance_max / peak)))), "
+            "peak = the largest value of diffuse + specular (if > 0)",
         },
-        **({"oidn_blend": {
-            "shares": dict(oidn_blend),
-            "quality": BASE_QUALITIES["oidn"],
-            "rule": "after the inverse (and / k), before keep_resolved, per branch with a share: out = share out + "
+        **(
+            {
+                "oidn_blend": {
+                    "shares": dict(oidn_blend),
+                    "quality": BASE_QUALITIES["oidn"],
+                    "rule": "after the inverse (and / k), before keep_resolved, per branch with a share: "
+                    "out = share out + "
                     "(1 - share) OIDN(clean branch) at that branch's quality, diffuse with the sanitised albedo and "
                     "normal as guides, specular alone, both at the input's own exposure (hdr), negatives and "
                     "non-finite values set to 0",
-        }} if oidn_blend else {}),
+                }
+            }
+            if oidn_blend
+            else {}
+        ),
         "keep_resolved": {
             "radius": resolved.RADIUS,
             "margin": resolved.MARGIN,
@@ -149,21 +184,24 @@ def export_manifest(generators: dict[str, nn.Module], transform: dict, log_max: 
             "unsampled": resolved.UNSAMPLED,
             "relmse_eps": RELMSE_EPS,
             "rule": "last, per branch with a variance layer, on the outputs after the inverse (and / k): "
-                    "m(x) = (x.R + x.G + x.B) / 3; box(x) = mean over the (2 radius + 1)^2 window, the image "
-                    "mirrored at its edges (d c b a | a b c d); s = m(diffuse + specular)^2 + relmse_eps, both "
-                    "branches as denoised before this step; v = max(box(m(variance) / s), 0); resolved = v < "
-                    "converged and box(variance is 0 in all of R, G, B) <= unsampled; b = box(m((out - noisy)^2) "
-                    "/ s) - v (1 + margin sqrt(2) / (2 radius + 1)); w = clip(b / max(b + v, 1e-30), 0, 1) where "
-                    "resolved and b > 0, else 0; out += w (noisy - out); noisy and variance are the sanitised "
-                    "input's, at its own exposure",
+            "m(x) = (x.R + x.G + x.B) / 3; box(x) = mean over the (2 radius + 1)^2 window, the image "
+            "mirrored at its edges (d c b a | a b c d); s = m(diffuse + specular)^2 + relmse_eps, both "
+            "branches as denoised before this step; v = max(box(m(variance) / s), 0); resolved = v < "
+            "converged and box(variance is 0 in all of R, G, B) <= unsampled; b = box(m((out - noisy)^2) "
+            "/ s) - v (1 + margin sqrt(2) / (2 radius + 1)); w = clip(b / max(b + v, 1e-30), 0, 1) where "
+            "resolved and b > 0, else 0; out += w (noisy - out); noisy and variance are the sanitised "
+            "input's, at its own exposure",
         },
         "eps": transform["eps"],
         **({"noise_std_unit": NOISE_STD_UNIT} if first.config.noise_input else {}),
         "transform": transform,
         "gate_radius": {branch: g.gate_radius for branch, g in generators.items()},
         "receptive_radius": halo,
-        "tile": {"halo": halo, "alignment": max(g.alignment for g in generators.values()),
-                 "rule": "crop each tile with `halo` pixels of image on every side that is not the image border "
-                         "(shift crops inwards at the borders, start them at multiples of `alignment`) and keep "
-                         "only its core: equal to the untiled result"},
+        "tile": {
+            "halo": halo,
+            "alignment": max(g.alignment for g in generators.values()),
+            "rule": "crop each tile with `halo` pixels of image on every side that is not the image border "
+            "(shift crops inwards at the borders, start them at multiples of `alignment`) and keep "
+            "only its core: equal to the untiled result",
+        },
     }

@@ -1,4 +1,5 @@
 """How a FullImageDenoiser runs and what it does around the networks: one settings object."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -58,5 +59,6 @@ class DenoiserOptions:
         if self.tile is not None and self.tile < 1:
             raise ValueError(f"FullImageDenoiser: tile must be >= 1, got {self.tile}")
         if self.ensemble not in ENSEMBLE_CODES:
-            raise ValueError(f"FullImageDenoiser: ensemble must be one of {tuple(ENSEMBLE_CODES)}, "
-                             f"got {self.ensemble!r}")
+            raise ValueError(
+                f"FullImageDenoiser: ensemble must be one of {tuple(ENSEMBLE_CODES)}, got {self.ensemble!r}"
+            )

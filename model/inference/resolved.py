@@ -30,6 +30,7 @@ worse by more than 0.12% on any metric, in family within 0.1%.
 It costs one box filter per branch, a second where any window is below CONVERGED and a third where one is
 resolved.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -50,8 +51,9 @@ one. A window of silent pixels alone says nothing; one that also holds sampled p
 a converged region whose silent pixels are dark."""
 
 
-def keep_resolved(denoised: np.ndarray, noisy: np.ndarray, variance: np.ndarray,
-                  value: np.ndarray) -> tuple[np.ndarray, float]:
+def keep_resolved(
+    denoised: np.ndarray, noisy: np.ndarray, variance: np.ndarray, value: np.ndarray
+) -> tuple[np.ndarray, float]:
     """(output, mean weight of the input): `denoised` moved toward `noisy` where the input is resolved.
 
     All (H, W, 3) float32 and finite: one branch's output, its sanitised input and the variance of the

@@ -7,6 +7,7 @@ seams, and no blending window is needed. No padding is added: crops are taken in
 inwards at its borders), so at the image border the network's own (replicate) padding applies just as
 in an untiled run and as at the borders of the 128x128 training patches. Any size works, 1x1 included.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,8 +44,10 @@ def receptive_radius(generator: Generator) -> int:
     """How many pixels away an input can still change an output pixel of `generator` (see its
     `receptive_radius` method: 36 for the paper's residual body, a 73x73 receptive field)."""
     if not isinstance(generator, Generator):
-        raise TypeError(f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
-                        f"pass overlap= explicitly for other modules")
+        raise TypeError(
+            f"receptive_radius needs an admc Generator, got {type(generator).__name__}; "
+            f"pass overlap= explicitly for other modules"
+        )
     return generator.receptive_radius()
 
 
@@ -59,8 +62,9 @@ def axis_windows(size: int, tile: int, halo: int, align: int = 1) -> list[tuple[
     crops grow by less than `align`.
     """
     if size < 1 or tile < 1 or halo < 0 or align < 1:
-        raise ValueError(f"axis_windows: need size >= 1, tile >= 1, halo >= 0, align >= 1; got {size}, {tile}, "
-                         f"{halo}, {align}")
+        raise ValueError(
+            f"axis_windows: need size >= 1, tile >= 1, halo >= 0, align >= 1; got {size}, {tile}, {halo}, {align}"
+        )
     count = math.ceil(size / tile)
     bounds = [round(i * size / count) for i in range(count + 1)]
     crop = min(size, max(b - a for a, b in zip(bounds, bounds[1:])) + 2 * halo)
@@ -75,12 +79,16 @@ Window = tuple[tuple[int, int, int, int], tuple[int, int, int, int]]
 """A tile: its (core_start, core_end, crop_start, crop_end) along the rows, then the columns."""
 
 
-def tile_calls(noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
-               base: Tensor | None = None) -> tuple[list[Window], list[tuple[Tensor, ...]]]:
+def tile_calls(
+    noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1, base: Tensor | None = None
+) -> tuple[list[Window], list[tuple[Tensor, ...]]]:
     """The tiles of (1, C, H, W) inputs and each tile's generator inputs (views of its crop)."""
     _, _, height, width = noisy.shape
-    windows = [(rows, columns) for rows in axis_windows(height, tile, halo, align)
-               for columns in axis_windows(width, tile, halo, align)]
+    windows = [
+        (rows, columns)
+        for rows in axis_windows(height, tile, halo, align)
+        for columns in axis_windows(width, tile, halo, align)
+    ]
     crops = [(..., slice(cy0, cy1), slice(cx0, cx1)) for (_, _, cy0, cy1), (_, _, cx0, cx1) in windows]
     return windows, [(noisy[crop], feats[crop], *(() if base is None else (base[crop],))) for crop in crops]
 
@@ -91,12 +99,13 @@ def paste(windows: list[Window], outputs: Iterable[Tensor], like: Tensor) -> Ten
     _, _, height, width = like.shape
     out = torch.empty((1, 3, height, width), dtype=torch.float32, device=like.device)
     for ((y0, y1, cy0, _), (x0, x1, cx0, _)), output in zip(windows, outputs, strict=True):
-        out[..., y0:y1, x0:x1] = output[..., y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0].float()
+        out[..., y0:y1, x0:x1] = output[..., y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0].float()
     return out
 
 
-def run_tiled(generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1,
-              base: Tensor | None = None) -> Tensor:
+def run_tiled(
+    generator: nn.Module, noisy: Tensor, feats: Tensor, tile: int, halo: int, align: int = 1, base: Tensor | None = None
+) -> Tensor:
     """`generator(noisy, feats[, base])` on (1, C, H, W) tensors, tile by tile; the output is float32.
 
     With halo >= receptive_radius(generator) and align = generator.alignment the result equals the

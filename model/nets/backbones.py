@@ -3,6 +3,7 @@
 A module of its own because the multi-scale body subclasses the full-resolution one: the base class
 cannot import its subclass to build it.
 """
+
 from __future__ import annotations
 
 from .generator import Generator

@@ -4,6 +4,7 @@ Five stride-2 stages take a square patch down by 32 (128 -> 4), then two linear 
 unbounded score per sample. The authors used BatchNorm; admc defaults to a per-sample layer norm
 because the WGAN-GP penalty is defined per sample and BatchNorm couples the samples of a batch.
 """
+
 from __future__ import annotations
 
 import torch
@@ -33,8 +34,11 @@ class Critic(nn.Module):
 
     def __init__(self, config: ModelSettings = ModelSettings(), patch_size: int = 128) -> None:
         config.check()
-        require(type(patch_size) is int and patch_size >= DOWNSAMPLING and patch_size % DOWNSAMPLING == 0,
-                "patch_size", f"must be a positive multiple of {DOWNSAMPLING}, got {patch_size!r}")
+        require(
+            type(patch_size) is int and patch_size >= DOWNSAMPLING and patch_size % DOWNSAMPLING == 0,
+            "patch_size",
+            f"must be a positive multiple of {DOWNSAMPLING}, got {patch_size!r}",
+        )
         super().__init__()
         self.config, self.patch_size = config, patch_size
         b, norm = config.critic_channels, config.critic_norm
@@ -56,8 +60,11 @@ class Critic(nn.Module):
 
     @staticmethod
     def _stage(c_in: int, c_out: int, kernel: int, stride: int, norm: str) -> list[nn.Module]:
-        return [nn.Conv2d(c_in, c_out, kernel, stride=stride, padding=1), _norm(norm, c_out),
-                nn.LeakyReLU(0.2, inplace=True)]
+        return [
+            nn.Conv2d(c_in, c_out, kernel, stride=stride, padding=1),
+            _norm(norm, c_out),
+            nn.LeakyReLU(0.2, inplace=True),
+        ]
 
     def forward(self, x: Tensor) -> Tensor:
         """(N, 3, P, P) -> (N, 1) scores; P must be the configured patch size (the linear layer fixes it)."""

@@ -7,6 +7,7 @@ One encoder per branch is shared by every CFM layer of that branch, so the featu
 once per forward pass rather than once per layer. It runs at full resolution (no striding):
 CFM modulates per pixel, so the condition must stay aligned with the image.
 """
+
 from __future__ import annotations
 
 from torch import Tensor, nn

@@ -6,6 +6,7 @@ skip from the head over the body, and a tail ending in ReLU (targets are log1p r
 The `mode` switch builds the paper's ablations (Fig. 12) from the same code; `base = "oidn"` builds the
 admc+oidn refiner, which corrects OIDN's output instead of denoising the noisy input.
 """
+
 from __future__ import annotations
 
 import torch
@@ -38,8 +39,9 @@ class CFMLayer(nn.Module):
     which also makes a freshly initialised, small-weight network start near the identity).
     """
 
-    def __init__(self, channels: int, cond_channels: int, use_scale: bool = True, use_shift: bool = True,
-                 layers: int = 2) -> None:
+    def __init__(
+        self, channels: int, cond_channels: int, use_scale: bool = True, use_shift: bool = True, layers: int = 2
+    ) -> None:
         super().__init__()
         if not (use_scale or use_shift):
             raise ValueError("CFMLayer needs a scale net, a shift net or both")
@@ -141,8 +143,9 @@ class Generator(nn.Module):
         f = config.feature_channels
         in_channels = COLOR_CHANNELS + f if config.mode == "concat" else COLOR_CHANNELS
         encoder_in = f + COLOR_CHANNELS if config.refines else f
-        self.encoder = (EncoderNet(config.encoder_channels, config.cond_channels, encoder_in)
-                        if config.modulated else None)
+        self.encoder = (
+            EncoderNet(config.encoder_channels, config.cond_channels, encoder_in) if config.modulated else None
+        )
         self.head = conv3x3(in_channels, c)
         self._build_body()
         self.tail = nn.Sequential(
@@ -165,8 +168,13 @@ class Generator(nn.Module):
 
     def _cfm(self, channels: int) -> CFMLayer:
         mode = self.config.mode
-        return CFMLayer(channels, self.config.cond_channels, use_scale=mode in ("cfm", "scale"),
-                        use_shift=mode in ("cfm", "shift"), layers=self.config.condition_layers)
+        return CFMLayer(
+            channels,
+            self.config.cond_channels,
+            use_scale=mode in ("cfm", "scale"),
+            use_shift=mode in ("cfm", "shift"),
+            layers=self.config.condition_layers,
+        )
 
     def _block_cfms(self, channels: int) -> tuple[CFMLayer, ...] | None:
         """A residual block's CFM layers (config.cfm_per_block of them), or None without modulation."""
@@ -202,9 +210,10 @@ class Generator(nn.Module):
         if noisy.ndim != 4 or noisy.shape[1] != COLOR_CHANNELS:
             raise ValueError(f"Generator: noisy must be (N, {COLOR_CHANNELS}, H, W), got {tuple(noisy.shape)}")
         if self.config.refines != (base is not None):
-            raise ValueError(f"Generator (base {self.config.base!r}): "
-                             + ("the base image (OIDN's output) is required" if self.config.refines
-                                else "takes no base image"))
+            raise ValueError(
+                f"Generator (base {self.config.base!r}): "
+                + ("the base image (OIDN's output) is required" if self.config.refines else "takes no base image")
+            )
         if base is not None and base.shape != noisy.shape:
             raise ValueError(f"Generator: base must match noisy {tuple(noisy.shape)}, got {tuple(base.shape)}")
         if self.config.mode == "none":

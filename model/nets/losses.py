@@ -6,6 +6,7 @@ Critic: (mean D(fake) - mean D(real)) / 2 + gp_weight * GP. The 1/2 on the Wasse
 authors' (it averages their "real" and "fake" loss terms); the penalty is not halved.
 All losses are computed in float32, whatever precision the networks ran in.
 """
+
 from __future__ import annotations
 
 import math
@@ -57,10 +58,17 @@ def display_ssim_loss(fake: Tensor, real: Tensor, linear_scale: Tensor | None = 
         return 1.0 - ssim_map_torch(display(fake_linear), display(real_linear)).mean()
 
 
-def generator_loss(fake: Tensor, real: Tensor, critic_fake: Tensor | None, l1_weight: float = 1.0,
-                   adv_weight: float = 5e-3, adversarial: bool = True, l1_floor: float = 1.0,
-                   ssim_weight: float = 0.0, linear_scale: Tensor | None = None
-                   ) -> tuple[Tensor, dict[str, Tensor]]:
+def generator_loss(
+    fake: Tensor,
+    real: Tensor,
+    critic_fake: Tensor | None,
+    l1_weight: float = 1.0,
+    adv_weight: float = 5e-3,
+    adversarial: bool = True,
+    l1_floor: float = 1.0,
+    ssim_weight: float = 0.0,
+    linear_scale: Tensor | None = None,
+) -> tuple[Tensor, dict[str, Tensor]]:
     """Total generator loss and its detached parts ("l1", "ssim" when weighted, "adversarial" when on).
 
     `critic_fake` is D(fake) with the graph to the generator kept; `adversarial=False` is the
@@ -104,7 +112,7 @@ def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor, shard: tuple
         rank, world = shard
         n = real.shape[0]
         alpha = torch.rand((n * world,) + (1,) * (real.ndim - 1), device=real.device, dtype=torch.float32)
-        alpha = alpha[rank * n:(rank + 1) * n]
+        alpha = alpha[rank * n : (rank + 1) * n]
         interpolates = (alpha * real32 + (1 - alpha) * fake32).requires_grad_(True)
         scores = critic(interpolates).float()
         (grad,) = torch.autograd.grad(scores.sum(), interpolates, create_graph=True)
@@ -113,8 +121,9 @@ def gradient_penalty(critic: nn.Module, real: Tensor, fake: Tensor, shard: tuple
         return (norm - 1).pow(2).mean()
 
 
-def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float = 10.0,
-                shard: tuple[int, int] = (0, 1)) -> tuple[Tensor, dict[str, Tensor]]:
+def critic_loss(
+    critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float = 10.0, shard: tuple[int, int] = (0, 1)
+) -> tuple[Tensor, dict[str, Tensor]]:
     """Critic loss and its detached parts: "wasserstein" (mean D(real) - mean D(fake), the
     distance estimate), "gp", "critic_real", "critic_fake". `fake` is detached (critic step only)."""
     fake = fake.detach()
@@ -122,6 +131,10 @@ def critic_loss(critic: nn.Module, real: Tensor, fake: Tensor, gp_weight: float 
     d_fake = critic(fake).float().mean()
     gp = gradient_penalty(critic, real, fake, shard)
     loss = (d_fake - d_real) / 2 + gp_weight * gp
-    parts = {"wasserstein": (d_real - d_fake).detach(), "gp": gp.detach(),
-             "critic_real": d_real.detach(), "critic_fake": d_fake.detach()}
+    parts = {
+        "wasserstein": (d_real - d_fake).detach(),
+        "gp": gp.detach(),
+        "critic_real": d_real.detach(),
+        "critic_fake": d_fake.detach(),
+    }
     return loss, parts

@@ -5,6 +5,7 @@ and critics from them, and the CLI and config checks read them without importing
 `admc-pipe` start, `--help` included). The defaults are the paper's scale (the generator ~1.53 M
 parameters, the critic ~14.5 M).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -30,24 +31,24 @@ DOWNSAMPLING = 32
 class ModelSettings:
     """Generator and critic architecture of each branch (both branches share it)."""
 
-    channels: int = 64            # generator feature channels
-    blocks: int = 16              # CFM residual blocks
-    cond_channels: int = 32       # EncoderNet output = condition map channels
-    encoder_channels: int = 128   # EncoderNet hidden channels
-    mode: str = "cfm"             # cfm | none | concat | shift | scale (the paper's ablations)
-    critic_channels: int = 64     # critic base width (VGG-128: 64)
-    critic_norm: str = "layer"    # none | layer | batch (batch = the authors' choice)
-    input_skip: bool = False      # admc option: out = ReLU(noisy + tail), so training starts at the identity
-                                  # (the authors': no skip)
-    backbone: str = "residual"    # residual (the paper's full-resolution body) | unet (multi-scale, model/nets/unet.py)
-    levels: int = 3               # unet: resolution halvings; `blocks` then run at 1/2^levels
-    base: str = "noisy"           # noisy (the paper's denoiser) | oidn | oidn-fast (admc+oidn: out = ReLU(OIDN +
-                                  # tail), the tail's last conv starting at 0; oidn-fast runs OIDN fast on the
-                                  # specular branch: layout.BASE_QUALITIES)
-    noise_input: bool = False     # the EncoderNet also reads the branch's per-pixel noise level, from the
-                                  # renders' variance buffers (transforms.noise_forward): inputs need *_var layers
-    cfm_per_block: int = 2        # CFM layers per residual block: 2 (the paper's) | 1 (before its first conv only)
-    condition_layers: int = 2     # 1x1 convs per CFM condition net: 2 (the paper's, 1x1 -> LReLU -> 1x1) | 1
+    channels: int = 64  # generator feature channels
+    blocks: int = 16  # CFM residual blocks
+    cond_channels: int = 32  # EncoderNet output = condition map channels
+    encoder_channels: int = 128  # EncoderNet hidden channels
+    mode: str = "cfm"  # cfm | none | concat | shift | scale (the paper's ablations)
+    critic_channels: int = 64  # critic base width (VGG-128: 64)
+    critic_norm: str = "layer"  # none | layer | batch (batch = the authors' choice)
+    input_skip: bool = False  # admc option: out = ReLU(noisy + tail), so training starts at the identity
+    # (the authors': no skip)
+    backbone: str = "residual"  # residual (the paper's full-resolution body) | unet (multi-scale, model/nets/unet.py)
+    levels: int = 3  # unet: resolution halvings; `blocks` then run at 1/2^levels
+    base: str = "noisy"  # noisy (the paper's denoiser) | oidn | oidn-fast (admc+oidn: out = ReLU(OIDN +
+    # tail), the tail's last conv starting at 0; oidn-fast runs OIDN fast on the
+    # specular branch: layout.BASE_QUALITIES)
+    noise_input: bool = False  # the EncoderNet also reads the branch's per-pixel noise level, from the
+    # renders' variance buffers (transforms.noise_forward): inputs need *_var layers
+    cfm_per_block: int = 2  # CFM layers per residual block: 2 (the paper's) | 1 (before its first conv only)
+    condition_layers: int = 2  # 1x1 convs per CFM condition net: 2 (the paper's, 1x1 -> LReLU -> 1x1) | 1
 
     def check(self) -> None:
         """Raise SettingError("<field>: <problem>") for the first field out of range (the networks check
@@ -62,9 +63,12 @@ class ModelSettings:
             value = getattr(self, key)
             require(type(value) is int and value in (1, 2), key, f"must be 1 or 2, got {value!r}")
         require(self.base in BASES, "base", f"{self.base!r} is not one of {BASES}")
-        require(not self.refines or self.modulated, "base",
-                f"{self.base!r} needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
-                f"its EncoderNet), got mode {self.mode!r}")
+        require(
+            not self.refines or self.modulated,
+            "base",
+            f"{self.base!r} needs a mode of {MODULATED_MODES} (the noisy radiance reaches the refiner through "
+            f"its EncoderNet), got mode {self.mode!r}",
+        )
 
     @property
     def modulated(self) -> bool:

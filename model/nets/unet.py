@@ -15,6 +15,7 @@ small model). Inputs whose size is not a multiple of 2^levels are padded at the 
 repeating their edge, as every conv pads (encoder.conv3x3), and the output cropped back, so any size
 works and a flat image stays flat up to its border.
 """
+
 from __future__ import annotations
 
 import torch.nn.functional as F
@@ -30,15 +31,16 @@ class UNetGenerator(Generator):
     @property
     def alignment(self) -> int:
         """Tiles start at multiples of 2^levels: the strided convs then see the same pixel grid."""
-        return 2 ** self.config.levels
+        return 2**self.config.levels
 
     def _build_body(self) -> None:
         c, levels = self.config.channels, self.config.levels
         widths = [c * (level + 1) for level in range(levels + 1)]
         self.down_blocks = nn.ModuleList(ResidualBlock(w, self._block_cfms(w)) for w in widths[:-1])
         self.downs = nn.ModuleList(conv3x3(a, b, stride=2) for a, b in zip(widths, widths[1:]))
-        self.bottom = nn.ModuleList(ResidualBlock(widths[-1], self._block_cfms(widths[-1]))
-                                    for _ in range(self.config.blocks))
+        self.bottom = nn.ModuleList(
+            ResidualBlock(widths[-1], self._block_cfms(widths[-1])) for _ in range(self.config.blocks)
+        )
         self.ups = nn.ModuleList(conv3x3(b, a) for a, b in zip(widths, widths[1:]))
         self.up_blocks = nn.ModuleList(ResidualBlock(w, self._block_cfms(w)) for w in widths[:-1])
 
@@ -51,9 +53,9 @@ class UNetGenerator(Generator):
         further than the pool's reach, so it adds nothing to the bound.
         """
         levels, blocks = self.config.levels, self.config.blocks
-        down = sum(2 * 2 ** level + 2 ** level for level in range(levels))
-        bottom = 2 * blocks * 2 ** levels
-        up = sum(2 ** level + 2 ** level + 2 * 2 ** level for level in range(levels))
+        down = sum(2 * 2**level + 2**level for level in range(levels))
+        bottom = 2 * blocks * 2**levels
+        up = sum(2**level + 2**level + 2 * 2**level for level in range(levels))
         return 1 + down + bottom + up + 2
 
     def _body(self, head: Tensor, cond: Tensor | None) -> Tensor:
@@ -78,4 +80,4 @@ class UNetGenerator(Generator):
         levels = self.config.levels
         if cond is None:
             return [None] * (levels + 1)
-        return [cond] + [F.avg_pool2d(cond, 2 ** level) for level in range(1, levels + 1)]
+        return [cond] + [F.avg_pool2d(cond, 2**level) for level in range(1, levels + 1)]

@@ -13,6 +13,7 @@ training (distributed.py) each rank steps on its shard of the batch: the gradien
 ranks before the finite check and the optimiser step, and the ranks agree on skipping a step, so they
 stay identical.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -62,8 +63,9 @@ def _frozen(module: nn.Module) -> Iterator[None]:
 class BranchTrainer:
     """Generator + critic of one branch with their optimisers, schedulers and bad-step counters."""
 
-    def __init__(self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int,
-                 device: torch.device):
+    def __init__(
+        self, branch: str, model: ModelSettings, settings: TrainSettings, patch_size: int, device: torch.device
+    ):
         self.branch, self.settings, self.device = branch, settings, device
         ranks = current()
         self.shard = (ranks.rank, ranks.world)  # this process's slice of each global batch
@@ -78,13 +80,14 @@ class BranchTrainer:
             "g_head_tail": torch.optim.Adam(groups["head_tail"], lr=lr, betas=ADAM_BETAS, eps=ADAM_EPS),
             "critic": torch.optim.Adam(self.critic.parameters(), lr=settings.lr_d, betas=ADAM_BETAS, eps=ADAM_EPS),
         }
-        self.schedulers = {name: torch.optim.lr_scheduler.MultiStepLR(opt, list(settings.lr_milestones),
-                                                                      settings.lr_gamma)
-                           for name, opt in self.optimizers.items()}
+        self.schedulers = {
+            name: torch.optim.lr_scheduler.MultiStepLR(opt, list(settings.lr_milestones), settings.lr_gamma)
+            for name, opt in self.optimizers.items()
+        }
         self.average = self._copy_of_generator() if settings.ema else None
         self.teacher = load_teacher(settings.distill_from, branch, model, device) if settings.distill_from else None
         self.average_updates = 0
-        self.batches = 0          # batches consumed from the data stream (its resume position)
+        self.batches = 0  # batches consumed from the data stream (its resume position)
         self.bad_total = 0
         self.bad_consecutive = 0
 
@@ -114,8 +117,11 @@ class BranchTrainer:
         return self.settings.critic_steps_per_g if self.settings.phase(step) == "adversarial" else 1
 
     def _to_device(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        return {k: batch[k].to(self.device, non_blocking=True, memory_format=MEMORY_FORMAT)
-                for k in IMAGE_KEYS if k in batch}
+        return {
+            k: batch[k].to(self.device, non_blocking=True, memory_format=MEMORY_FORMAT)
+            for k in IMAGE_KEYS
+            if k in batch
+        }
 
     def _critic_update(self, batch: dict[str, Tensor]) -> tuple[bool, dict[str, Tensor]]:
         with torch.no_grad(), autocast_for(self.device, self.dtype):
@@ -135,17 +141,26 @@ class BranchTrainer:
         opt.step()
         return True, parts
 
-    def _generator_update(self, step: int, batch: dict[str, Tensor], adversarial: bool
-                          ) -> tuple[bool, dict[str, Tensor]]:
+    def _generator_update(
+        self, step: int, batch: dict[str, Tensor], adversarial: bool
+    ) -> tuple[bool, dict[str, Tensor]]:
         for opt in (self.optimizers["g_body"], self.optimizers["g_head_tail"]):
             opt.zero_grad(set_to_none=True)
         s = self.settings
         with _frozen(self.critic), autocast_for(self.device, self.dtype):
             fake = self.generator(batch["noisy"], batch["features"], batch.get("base"))
             critic_fake = self.critic(fake) if adversarial else None
-            loss, parts = generator_loss(fake, batch["reference"], critic_fake, s.l1_weight, s.adv_weight,
-                                         adversarial, s.l1_floor, s.ssim_weight,
-                                         linear_scale(batch["features"], self.branch) if s.ssim_weight else None)
+            loss, parts = generator_loss(
+                fake,
+                batch["reference"],
+                critic_fake,
+                s.l1_weight,
+                s.adv_weight,
+                adversarial,
+                s.l1_floor,
+                s.ssim_weight,
+                linear_scale(batch["features"], self.branch) if s.ssim_weight else None,
+            )
             if self.teacher is not None:
                 with torch.no_grad():
                     taught = self.teacher(batch["noisy"], batch["features"], batch.get("base"))
@@ -172,8 +187,9 @@ class BranchTrainer:
         schedulers changed."""
         phase = self.settings.phase(step)
         if len(batches) != self.batches_per_step(step):
-            raise ValueError(f"{self.branch} step {step} ({phase}): needs {self.batches_per_step(step)} "
-                             f"batches, got {len(batches)}")
+            raise ValueError(
+                f"{self.branch} step {step} ({phase}): needs {self.batches_per_step(step)} batches, got {len(batches)}"
+            )
         self.batches += len(batches)
         batches = [self._to_device(b) for b in batches]
         self.generator.train()
@@ -208,12 +224,21 @@ class BranchTrainer:
         return {f"lr_{name}": opt.param_groups[0]["lr"] for name, opt in self.optimizers.items()}
 
     def state_dict(self) -> dict:
-        average = {} if self.average is None else {"average": self.average.state_dict(),
-                                                   "average_updates": self.average_updates}
-        return {"generator": self.generator.state_dict(), "critic": self.critic.state_dict(), **average,
-                "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-                "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
-                "batches": self.batches, "bad_total": self.bad_total, "bad_consecutive": self.bad_consecutive}
+        average = (
+            {}
+            if self.average is None
+            else {"average": self.average.state_dict(), "average_updates": self.average_updates}
+        )
+        return {
+            "generator": self.generator.state_dict(),
+            "critic": self.critic.state_dict(),
+            **average,
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
+            "batches": self.batches,
+            "bad_total": self.bad_total,
+            "bad_consecutive": self.bad_consecutive,
+        }
 
     def load_state_dict(self, state: dict, source: str) -> None:
         self.load_networks(state["generator"], state["critic"], source)
@@ -224,17 +249,22 @@ class BranchTrainer:
         self.batches, self.bad_total = state["batches"], state["bad_total"]
         self.bad_consecutive = state["bad_consecutive"]
         if self.average is not None and "average" in state:
-            load_network(self.average, state["average"], f"{source}: {self.branch} moving average",
-                         "the configured architecture")
+            load_network(
+                self.average, state["average"], f"{source}: {self.branch} moving average", "the configured architecture"
+            )
             self.average_updates = state["average_updates"]
 
     def load_networks(self, generator: dict[str, Tensor], critic: dict[str, Tensor], source: str) -> None:
         """Load weights (any float dtype), naming `source` and the mismatch if the architecture differs (the
         critic's classifier is sized for the patch, so a patch size change shows there)."""
         load_network(self.generator, generator, f"{source}: {self.branch} generator", "the configured architecture")
-        load_network(self.critic, critic, f"{source}: {self.branch} critic",
-                     f"the configured architecture at tile.patch_size = {self.patch_size} (the critic's "
-                     "classifier is sized for the patch it was trained on)")
+        load_network(
+            self.critic,
+            critic,
+            f"{source}: {self.branch} critic",
+            f"the configured architecture at tile.patch_size = {self.patch_size} (the critic's "
+            "classifier is sized for the patch it was trained on)",
+        )
         if self.average is not None:  # the average starts from the loaded weights (a checkpoint's own follows)
             self.average.load_state_dict(self.generator.state_dict())
             self.average_updates = 0

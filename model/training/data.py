@@ -5,6 +5,7 @@ the stream), drawn in the main process: the data a run sees does not depend on t
 workers or their scheduling, and a resumed run continues the stream by starting at the number of
 batches it had consumed. Augmentation is the 8 symmetries of the square (symmetry.py).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -37,8 +38,11 @@ class PatchDataset(Dataset):
     def __getitem__(self, key: tuple[int, int]) -> dict[str, torch.Tensor]:
         row, code = key
         item = self.reader[row]
-        return {name: apply(torch.from_numpy(item[name]), code, normals=name == "features").contiguous()
-                for name in IMAGE_KEYS if name in item}
+        return {
+            name: apply(torch.from_numpy(item[name]), code, normals=name == "features").contiguous()
+            for name in IMAGE_KEYS
+            if name in item
+        }
 
 
 class BatchStream:
@@ -50,8 +54,15 @@ class BatchStream:
     each reading only its own rows, and a resumed rank continues it at the same global batch.
     """
 
-    def __init__(self, n_rows: int, batch_size: int, seed: int, start_batch: int = 0, augment: bool = True,
-                 shard: tuple[int, int] = (0, 1)):
+    def __init__(
+        self,
+        n_rows: int,
+        batch_size: int,
+        seed: int,
+        start_batch: int = 0,
+        augment: bool = True,
+        shard: tuple[int, int] = (0, 1),
+    ):
         if n_rows < 1:
             raise ValueError("BatchStream: no rows to sample")
         rank, world = shard
@@ -88,8 +99,15 @@ def branch_seed(seed: int, branch: str) -> int:
     return seed * 2 + (1 if branch == "specular" else 0)
 
 
-def train_loader(reader: PatchReader, batch_size: int, seed: int, start_batch: int = 0,
-                 num_workers: int = 0, pin_memory: bool = False, shard: tuple[int, int] = (0, 1)) -> DataLoader:
+def train_loader(
+    reader: PatchReader,
+    batch_size: int,
+    seed: int,
+    start_batch: int = 0,
+    num_workers: int = 0,
+    pin_memory: bool = False,
+    shard: tuple[int, int] = (0, 1),
+) -> DataLoader:
     """An endless DataLoader over the reader, starting at batch `start_batch` of the seeded stream
     (this rank's `shard` of each batch under data-parallel training).
 
@@ -97,10 +115,15 @@ def train_loader(reader: PatchReader, batch_size: int, seed: int, start_batch: i
     torch RNG (which the gradient penalty uses): a resumed run stays bit-identical.
     """
     stream = BatchStream(len(reader), batch_size, seed, start_batch, shard=shard)
-    return DataLoader(PatchDataset(reader), batch_sampler=stream, num_workers=num_workers,
-                      pin_memory=pin_memory, persistent_workers=False,
-                      generator=torch.Generator().manual_seed(seed),
-                      prefetch_factor=2 if num_workers > 0 else None)
+    return DataLoader(
+        PatchDataset(reader),
+        batch_sampler=stream,
+        num_workers=num_workers,
+        pin_memory=pin_memory,
+        persistent_workers=False,
+        generator=torch.Generator().manual_seed(seed),
+        prefetch_factor=2 if num_workers > 0 else None,
+    )
 
 
 def spread_rows(length: int, n: int) -> list[int]:

@@ -17,6 +17,7 @@ non-finite step (`agree`) before anyone waits for the others' gradients.
 `launch` starts N such processes on this machine itself (torch.multiprocessing.spawn), so that the
 parent, the admc command, can name the rank that failed in one clear message.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -61,8 +62,12 @@ def current() -> Ranks:
     """This process's place in the initialised process group (rank 0 of 1 without one)."""
     if not (dist.is_available() and dist.is_initialized()):
         return Ranks()
-    return Ranks(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")),
-                 int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    return Ranks(
+        dist.get_rank(),
+        dist.get_world_size(),
+        int(os.environ.get("LOCAL_RANK", "0")),
+        int(os.environ.get("LOCAL_WORLD_SIZE", "1")),
+    )
 
 
 def backend_for(device: torch.device) -> str:
@@ -94,8 +99,9 @@ def _collective():
     except RuntimeError as exc:
         ranks = current()
         said = " ".join(str(exc).split())[:200] or type(exc).__name__
-        raise RankFailed(f"training process rank {ranks.rank} of {ranks.world} lost contact with the others "
-                         f"({said})") from None
+        raise RankFailed(
+            f"training process rank {ranks.rank} of {ranks.world} lost contact with the others ({said})"
+        ) from None
 
 
 def agree(ok: bool, device: torch.device) -> bool:
@@ -161,8 +167,16 @@ def _free_port() -> int:
 
 def _rank_main(rank: int, nproc: int, port: int, backend: str, fn: Callable, kwargs: dict, queue) -> None:
     """One launched rank: join the group, run fn; rank 0 sends back its result, a user error its message."""
-    os.environ.update({"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "RANK": str(rank),
-                       "WORLD_SIZE": str(nproc), "LOCAL_RANK": str(rank), "LOCAL_WORLD_SIZE": str(nproc)})
+    os.environ.update(
+        {
+            "MASTER_ADDR": "127.0.0.1",
+            "MASTER_PORT": str(port),
+            "RANK": str(rank),
+            "WORLD_SIZE": str(nproc),
+            "LOCAL_RANK": str(rank),
+            "LOCAL_WORLD_SIZE": str(nproc),
+        }
+    )
     if backend == "nccl":
         torch.cuda.set_device(rank)
     # tqdm's default lock is a multiprocessing semaphore: one left by a killed rank makes Python warn of
@@ -199,8 +213,10 @@ def launch(nproc: int, device: torch.device, fn: Callable, kwargs: dict) -> Any:
         if said and not exc.signal_name:
             raise said[0][2] from None
         how = f"was killed by {exc.signal_name}" if exc.signal_name else f"exited with code {exc.exit_code}"
-        raise RankFailed(f"training process rank {exc.error_index} of {nproc} (pid {exc.error_pid}) {how}; "
-                         "the other ranks were stopped") from None
+        raise RankFailed(
+            f"training process rank {exc.error_index} of {nproc} (pid {exc.error_pid}) {how}; "
+            "the other ranks were stopped"
+        ) from None
     results = [r for kind, _, r in _drain(queue) if kind == "result"]
     return results[0]
 
@@ -216,9 +232,13 @@ def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> No
     """What `world` training processes need: a global batch that splits evenly, and no batch norm in the
     critic (its statistics would cover each process's slice, not the batch one process normalises over)."""
     if settings.batch_size % world:
-        raise TrainingError(f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
-                            f"split across {world} training processes; use a multiple of {world}")
+        raise TrainingError(
+            f"config key 'train.batch_size': the global batch of {settings.batch_size} does not "
+            f"split across {world} training processes; use a multiple of {world}"
+        )
     if world > 1 and model.critic_norm == "batch":
-        raise TrainingError(f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
-                            "training processes' slices of the batch, not over the whole batch; use \"layer\" "
-                            "(the default) or \"none\", or train in one process")
+        raise TrainingError(
+            f"config key 'model.critic_norm': \"batch\" would normalise over each of the {world} "
+            'training processes\' slices of the batch, not over the whole batch; use "layer" '
+            '(the default) or "none", or train in one process'
+        )

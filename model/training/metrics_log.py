@@ -3,6 +3,7 @@
 On resume, rows and events after the resumed step (written by the interrupted run after its last
 checkpoint) are dropped, so the logs read as one uninterrupted run.
 """
+
 from __future__ import annotations
 
 import csv

@@ -1,5 +1,6 @@
 """A training run's progress: a live bar on a terminal, a plain line per log_every steps elsewhere, and
 the averaged losses that go to metrics.csv and TensorBoard."""
+
 from __future__ import annotations
 
 import sys
@@ -37,8 +38,9 @@ class ProgressWindow:
     def __init__(self, run, start: int):  # run: trainer._Run
         self.run = run
         self.live = run.progress and sys.stderr.isatty()
-        self.bar = tqdm(total=run.settings.steps, initial=start, disable=not self.live, desc=run.stage,
-                        dynamic_ncols=True)
+        self.bar = tqdm(
+            total=run.settings.steps, initial=start, disable=not self.live, desc=run.stage, dynamic_ncols=True
+        )
         self.averages = Averages()
         self.start, self.patches = time.perf_counter(), 0
 

@@ -15,6 +15,7 @@ patches of one scene are not independent, so the test is, if anything, too lenie
 noise, and a small val split remains a small val split. (A run resumed with other train.val_patches has
 other val patches than its starting weights were scored on; it then compares means only.)
 """
+
 from __future__ import annotations
 
 import math
@@ -49,6 +50,7 @@ class Best:
 @dataclass
 class Unproven:
     """The lowest-valued step that did not beat the starting weights by enough: reported, not shipped."""
+
     step: int
     value: float
     z: float
@@ -80,8 +82,15 @@ class BestNetworks:
         self.start: dict[str, Tensor] = {}  # per-patch values of the guarded starting weights
         self.unproven: dict[str, Unproven] = {}
 
-    def offer(self, branch: str, step: int, per_patch: Tensor, generator: torch.nn.Module,
-              critic: torch.nn.Module, guard: bool = False) -> bool:
+    def offer(
+        self,
+        branch: str,
+        step: int,
+        per_patch: Tensor,
+        generator: torch.nn.Module,
+        critic: torch.nn.Module,
+        guard: bool = False,
+    ) -> bool:
         """Keep these networks if their mean per-patch value beats the branch's best (and, once starting
         weights are guarded, beats those significantly); True when it did. `guard` marks the starting
         weights of a fine-tuning: they are kept, and later steps must prove themselves against them."""
@@ -118,22 +127,35 @@ class BestNetworks:
             unproven = self.unproven.get(branch)
             if best.step == 0 and unproven is not None and unproven.value < best.value:
                 gain = 100 * (1 - unproven.value / best.value)
-                notes.append(f"{branch}: step {unproven.step} was {gain:.2g}% below the starting weights on validation "
-                             f"({label} {unproven.value:.5g} against {best.value:.5g}), within the noise of the val "
-                             f"patches ({unproven.z:.2g} standard errors; train.select_z asks {self.min_z:g}); the "
-                             f"weights file keeps the starting weights unchanged")
+                notes.append(
+                    f"{branch}: step {unproven.step} was {gain:.2g}% below the starting weights on validation "
+                    f"({label} {unproven.value:.5g} against {best.value:.5g}), within the noise of the val "
+                    f"patches ({unproven.z:.2g} standard errors; train.select_z asks {self.min_z:g}); the "
+                    f"weights file keeps the starting weights unchanged"
+                )
             elif best.step == 0 and last_step > 0:
-                notes.append(f"{branch}: no step beat the starting weights on validation ({label} {best.value:.5g} "
-                             f"at step 0); the weights file keeps them unchanged")
+                notes.append(
+                    f"{branch}: no step beat the starting weights on validation ({label} {best.value:.5g} "
+                    f"at step 0); the weights file keeps them unchanged"
+                )
             elif best.step != last_step and branch in last:
-                notes.append(f"{branch}: the weights file holds step {best.step} (validation {label} "
-                             f"{best.value:.5g}), better than the last step {last_step} ({last[branch]:.5g})")
+                notes.append(
+                    f"{branch}: the weights file holds step {best.step} (validation {label} "
+                    f"{best.value:.5g}), better than the last step {last_step} ({last[branch]:.5g})"
+                )
         return selected, notes
 
     def state_dict(self) -> dict:
-        return {b: {"step": x.step, "value": x.value, "networks": x.networks,
-                    "start": self.start.get(b), "unproven": vars(self.unproven[b]) if b in self.unproven else None}
-                for b, x in self.best.items()}
+        return {
+            b: {
+                "step": x.step,
+                "value": x.value,
+                "networks": x.networks,
+                "start": self.start.get(b),
+                "unproven": vars(self.unproven[b]) if b in self.unproven else None,
+            }
+            for b, x in self.best.items()
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.best = {b: Best(x["step"], x["value"], x["networks"]) for b, x in state.items()}

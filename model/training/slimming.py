@@ -9,6 +9,7 @@ loses its second CFM layer, its second conv is refitted so that the block's outp
 block's on the same input; blocks are fitted in order on the slim network's own activations, so each
 corrects what the one before got wrong, and the body's last conv likewise.
 """
+
 from __future__ import annotations
 
 import torch

@@ -5,6 +5,7 @@ teacher's outputs than from the references alone: the teacher's are noise-free a
 its long training learnt, so the student's loss has one more, smooth target per pixel (Hinton et al. 2015).
 The teacher reads the same inputs as the student (base and noise input must match); its size may differ.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,14 +33,19 @@ def load_teacher(path: str, branch: str, model: ModelSettings, device: torch.dev
     teacher_model = ModelSettings.from_saved(saved)
     differ = [k for k in SAME_INPUTS if getattr(teacher_model, k) != getattr(model, k)]
     if differ:
-        raise TrainingError(f"train.distill_from: {path} has " + ", ".join(
-            f"model.{k} = {getattr(teacher_model, k)!r}" for k in differ) + ", this config " + ", ".join(
-            f"{getattr(model, k)!r}" for k in differ) + ": a teacher must read the same inputs")
+        raise TrainingError(
+            f"train.distill_from: {path} has "
+            + ", ".join(f"model.{k} = {getattr(teacher_model, k)!r}" for k in differ)
+            + ", this config "
+            + ", ".join(f"{getattr(model, k)!r}" for k in differ)
+            + ": a teacher must read the same inputs"
+        )
     if branch not in nets:
         raise TrainingError(f"train.distill_from: {path} has no {branch} branch")
     teacher = build_generator(teacher_model)
-    load_network(teacher, nets[branch]["generator"], f"{path} ({branch} generator)",
-                 str(dataclasses.asdict(teacher_model)))
+    load_network(
+        teacher, nets[branch]["generator"], f"{path} ({branch} generator)", str(dataclasses.asdict(teacher_model))
+    )
     teacher = teacher.to(device, memory_format=MEMORY_FORMAT).eval()
     for p in teacher.parameters():
         p.requires_grad_(False)

@@ -10,6 +10,7 @@ same store (fingerprint).
 Under data-parallel training (several processes, see distributed.py) every rank runs this same code on
 its shard of each global batch of train.batch_size; rank 0 alone validates, selects, writes and speaks.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,8 +26,14 @@ from tqdm import tqdm
 
 from admc.errors import AdmcError, TrainingError
 from admc.stores import patches
-from admc.stores.checkpoints import (CHECKPOINT_NAME, OIDN_BLEND, WEIGHTS_NAME, export_weights, load_checkpoint,
-                                     save_checkpoint)
+from admc.stores.checkpoints import (
+    CHECKPOINT_NAME,
+    OIDN_BLEND,
+    WEIGHTS_NAME,
+    export_weights,
+    load_checkpoint,
+    save_checkpoint,
+)
 from admc.stores.patches import PatchReader, PatchStoreError
 
 from ..nets.settings import ModelSettings
@@ -37,8 +44,7 @@ from .data import branch_seed, load_rows, train_loader
 from .distributed import RankFailed, Ranks, agree, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
 from .progress import ProgressWindow
-from .resume import (check_resumable, load_init, rng_state, say_precision_change, seed_everything,
-                     set_rng_state)
+from .resume import check_resumable, load_init, rng_state, say_precision_change, seed_everything, set_rng_state
 from .selection import BestNetworks, selection_values
 from ..train_settings import STAGES, TrainSettings
 from .validation import baseline_scores, best_blend, validate
@@ -70,15 +76,28 @@ def _open_reader(run: _Run, split: str, transform: dict, branch: str, source: st
     """The rows of a split and branch, with their OIDN bases for a refiner (model.base "oidn" or "oidn-fast",
     stored at its qualities) and their noise maps in the features for model.noise_input."""
     try:
-        return PatchReader(run.store, split, expect_transform=transform, branch=branch,
-                           base=None if run.model.base == "noisy" else run.model.base, noise=run.model.noise_input)
+        return PatchReader(
+            run.store,
+            split,
+            expect_transform=transform,
+            branch=branch,
+            base=None if run.model.base == "noisy" else run.model.base,
+            noise=run.model.noise_input,
+        )
     except PatchStoreError as exc:
         raise PatchStoreError(f"refused for {source}: {exc}") from None
 
 
-def train(store_path: str | Path, out_dir: str | Path, settings: TrainSettings, model: ModelSettings,
-          stage: str = "pretrain", init_from: str | Path | None = None, resume: bool = False,
-          progress: bool = True) -> TrainResult:
+def train(
+    store_path: str | Path,
+    out_dir: str | Path,
+    settings: TrainSettings,
+    model: ModelSettings,
+    stage: str = "pretrain",
+    init_from: str | Path | None = None,
+    resume: bool = False,
+    progress: bool = True,
+) -> TrainResult:
     """Train (or resume training) both branches; writes checkpoint.pt, weights-fp16.pt, metrics.csv and
     TensorBoard events to `out_dir`. Raises TrainingDiverged after max_bad_steps consecutive
     non-finite steps (the last checkpoint on disk is then the last one written before the streak)."""
@@ -129,6 +148,7 @@ class Clock:
 @dataclass
 class _Run:
     """What every part of one training run shares: its inputs, networks, logs and what it has said."""
+
     store: Path
     out_dir: Path
     settings: TrainSettings
@@ -182,13 +202,22 @@ class _Run:
 
     def state(self, step: int) -> dict:
         """Everything the next step depends on: the checkpoint's content."""
-        return {"stage": self.stage, "step": step, "settings": dataclasses.asdict(self.settings),
-                "precision": self.precision, "model": dataclasses.asdict(self.model), "transform": self.transform,
-                "store": {"path": str(self.store), "fingerprint": self.fingerprint, "patch_size": self.patch_size},
-                "init_from": str(self.init_from) if self.init_from is not None else None,
-                "branches": {b: t.state_dict() for b, t in self.trainers.items()},
-                "best": self.best.state_dict(), "rng": rng_state(), "seconds": self.clock.seconds(),
-                "start_scores": self.start_scores, "blends": self.blends}
+        return {
+            "stage": self.stage,
+            "step": step,
+            "settings": dataclasses.asdict(self.settings),
+            "precision": self.precision,
+            "model": dataclasses.asdict(self.model),
+            "transform": self.transform,
+            "store": {"path": str(self.store), "fingerprint": self.fingerprint, "patch_size": self.patch_size},
+            "init_from": str(self.init_from) if self.init_from is not None else None,
+            "branches": {b: t.state_dict() for b, t in self.trainers.items()},
+            "best": self.best.state_dict(),
+            "rng": rng_state(),
+            "seconds": self.clock.seconds(),
+            "start_scores": self.start_scores,
+            "blends": self.blends,
+        }
 
 
 def check_fresh_start(out_dir: Path) -> None:
@@ -198,9 +227,11 @@ def check_fresh_start(out_dir: Path) -> None:
     if checkpoint.exists():
         raise TrainingError(f"{checkpoint} exists: pass resume=True to continue that run, or use another out_dir")
     if weights.exists():
-        raise TrainingError(f"{weights}: holds the finished weights of an earlier run, whose {CHECKPOINT_NAME} is "
-                            "gone, so it cannot resume; a new run from step 0 would replace them: move them away "
-                            "first, or pass --restart to discard that run")
+        raise TrainingError(
+            f"{weights}: holds the finished weights of an earlier run, whose {CHECKPOINT_NAME} is "
+            "gone, so it cannot resume; a new run from step 0 would replace them: move them away "
+            "first, or pass --restart to discard that run"
+        )
 
 
 def _starting_point(run: _Run, resume: bool) -> tuple[dict | None, dict | None, dict, str]:
@@ -298,8 +329,9 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     selection of the shipped weights."""
     for b, rows in val.items():
         trainer = run.trainers[b]
-        scores, per_patch, output = validate(trainer.shipped_generator, rows, b, run.settings.batch_size,
-                                             run.device, trainer.dtype)
+        scores, per_patch, output = validate(
+            trainer.shipped_generator, rows, b, run.settings.batch_size, run.device, trainer.dtype
+        )
         if b not in run.baselines:
             run.baselines[b] = baseline_scores(rows, b)
         run.start_scores.setdefault(b, scores)  # step 0's (a checkpoint carries them over a resume)
@@ -307,8 +339,11 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
         if run.settings.oidn_blend and "oidn" in rows:
             share, blended = best_blend(output, rows, b)
             run.blends.setdefault(b, {})[step] = share
-            run.validation[b].update(blend_share=share, blend_relmse=blended,
-                                     blend_relmse_vs_oidn=blended / max(run.baselines[b]["oidn_relmse"], 1e-12))
+            run.validation[b].update(
+                blend_share=share,
+                blend_relmse=blended,
+                blend_relmse_vs_oidn=blended / max(run.baselines[b]["oidn_relmse"], 1e-12),
+            )
         run.metrics.log(step, {f"{b}/val_{k}": v for k, v in run.validation[b].items()})
         run.show(f"step {step} {b} validation: " + _comparison(run.validation[b]))
         values = selection_values(run.settings.select_metric, per_patch, run.validation[b])
@@ -338,8 +373,10 @@ def _comparison(validation: dict[str, float]) -> str:
             vs.append(f"{validation[f'{k}_vs_oidn']:.3f}x OIDN")
         parts.append(f"{label} {validation[k]:.4g} ({', '.join(vs)})")
     if "blend_share" in validation:
-        parts.append(f"blended {validation['blend_share']:.2f} : {1 - validation['blend_share']:.2f} with OIDN, relMSE "
-                     f"{validation['blend_relmse']:.4g} ({validation['blend_relmse_vs_oidn']:.3f}x OIDN)")
+        parts.append(
+            f"blended {validation['blend_share']:.2f} : {1 - validation['blend_share']:.2f} with OIDN, relMSE "
+            f"{validation['blend_relmse']:.4g} ({validation['blend_relmse_vs_oidn']:.3f}x OIDN)"
+        )
     return "; ".join(parts)
 
 
@@ -348,8 +385,20 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
     settings = run.settings
     pin = run.device.type == "cuda"
     shard = (run.ranks.rank, run.ranks.world)
-    streams = {b: iter(train_loader(readers[b], settings.batch_size, branch_seed(settings.seed, b),
-                                    t.batches, settings.num_workers, pin, shard)) for b, t in run.trainers.items()}
+    streams = {
+        b: iter(
+            train_loader(
+                readers[b],
+                settings.batch_size,
+                branch_seed(settings.seed, b),
+                t.batches,
+                settings.num_workers,
+                pin,
+                shard,
+            )
+        )
+        for b, t in run.trainers.items()
+    }
     if run.ranks.lead:
         run.metrics = MetricsLog(run.out_dir, resume_step=start if resume else None)
     else:
@@ -382,8 +431,10 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
                 last_saved = done
             run.step = done
             if out_of_time:
-                run.say(f"train.minutes = {settings.minutes:g}: the budget is spent, stopping at step {done} of "
-                        f"{settings.steps} (raise train.minutes to train on)")
+                run.say(
+                    f"train.minutes = {settings.minutes:g}: the budget is spent, stopping at step {done} of "
+                    f"{settings.steps} (raise train.minutes to train on)"
+                )
                 break
     except RankFailed as exc:
         kept = f"step {last_saved}" if last_saved is not None else "none written yet"
@@ -397,14 +448,17 @@ def _loop(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], star
 
 def _bad_step(run: _Run, branch: str, trainer: BranchTrainer, step: int, last_saved: int | None) -> None:
     """Say a skipped step; stop with TrainingDiverged after max_bad_steps in a row."""
-    run.say(f"step {step}: {branch} skipped, non-finite batch, loss or gradient "
-            f"({trainer.bad_consecutive} in a row, {trainer.bad_total} in all)")
+    run.say(
+        f"step {step}: {branch} skipped, non-finite batch, loss or gradient "
+        f"({trainer.bad_consecutive} in a row, {trainer.bad_total} in all)"
+    )
     if trainer.bad_consecutive >= run.settings.max_bad_steps:
         kept = f"step {last_saved}" if last_saved is not None else "none written"
         raise TrainingDiverged(
             f"{branch}: {trainer.bad_consecutive} consecutive steps with non-finite batches, losses or "
             f"gradients (steps {step - trainer.bad_consecutive + 1}..{step}); stopped. Last good "
-            f"checkpoint: {run.checkpoint_path} ({kept})")
+            f"checkpoint: {run.checkpoint_path} ({kept})"
+        )
 
 
 def _finish(run: _Run, start: int) -> TrainResult:
@@ -420,12 +474,32 @@ def _finish(run: _Run, start: int) -> TrainResult:
         blend = {b: run.blends[b][s["step"]] for b, s in selected.items() if s["step"] in run.blends.get(b, {})}
         for b, share in blend.items():
             run.notes.append(f"{b}: ships blended with OIDN, {share:.2f} of its own output (chosen on the val patches)")
-        export_weights(run.weights_path, nets,
-                       {"model": dataclasses.asdict(run.model), "transform": run.transform,
-                        "patch_size": run.patch_size, "stage": run.stage, "step": last_step, "selected": selected,
-                        "store_fingerprint": run.fingerprint, "precision": run.precision,
-                        **({OIDN_BLEND: blend} if blend else {})})
-    return TrainResult(out_dir=run.out_dir, checkpoint=run.checkpoint_path, weights=run.weights_path,
-                       step=last_step, branches=list(trainers), skipped_branches=run.skipped,
-                       bad_steps={b: t.bad_total for b, t in trainers.items()}, last_losses=run.last_losses,
-                       validation=run.validation, notes=run.notes, selected=selected, rank=run.ranks.rank)
+        export_weights(
+            run.weights_path,
+            nets,
+            {
+                "model": dataclasses.asdict(run.model),
+                "transform": run.transform,
+                "patch_size": run.patch_size,
+                "stage": run.stage,
+                "step": last_step,
+                "selected": selected,
+                "store_fingerprint": run.fingerprint,
+                "precision": run.precision,
+                **({OIDN_BLEND: blend} if blend else {}),
+            },
+        )
+    return TrainResult(
+        out_dir=run.out_dir,
+        checkpoint=run.checkpoint_path,
+        weights=run.weights_path,
+        step=last_step,
+        branches=list(trainers),
+        skipped_branches=run.skipped,
+        bad_steps={b: t.bad_total for b, t in trainers.items()},
+        last_losses=run.last_losses,
+        validation=run.validation,
+        notes=run.notes,
+        selected=selected,
+        rank=run.ranks.rank,
+    )

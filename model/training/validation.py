@@ -5,6 +5,7 @@ HDR values, PSNR and 1-SSIM on the 8-bit tone-mapped images. Each is computed pe
 for the denoised output at every validation and, once per run, for its baseline: the noisy input (and OIDN's
 output, for a refiner).
 """
+
 from __future__ import annotations
 
 import torch
@@ -34,9 +35,14 @@ BLEND_SHARES = torch.linspace(0.0, 1.0, 21)
 
 
 @torch.no_grad()
-def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_size: int,
-             device: torch.device, dtype: torch.dtype = torch.float32
-             ) -> tuple[dict[str, float], dict[str, Tensor], Tensor]:
+def validate(
+    generator: Generator,
+    val: dict[str, Tensor],
+    branch: str,
+    batch_size: int,
+    device: torch.device,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[dict[str, float], dict[str, Tensor], Tensor]:
     """({"psnr", "relmse", "one_minus_ssim"} of the generator's output averaged over the val patches, the
     same {"relmse", "one_minus_ssim"} per patch, the output in linear radiance), the generator run in `dtype`
     as in training (and as the denoiser runs it on the same machine)."""
@@ -44,17 +50,20 @@ def validate(generator: Generator, val: dict[str, Tensor], branch: str, batch_si
     generator.eval()
     outputs = []
     for i in range(0, len(val["noisy"]), batch_size):
-        noisy = val["noisy"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT)
-        features = val["features"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT)
-        base = val["base"][i:i + batch_size].to(device, memory_format=MEMORY_FORMAT) if "base" in val else None
+        noisy = val["noisy"][i : i + batch_size].to(device, memory_format=MEMORY_FORMAT)
+        features = val["features"][i : i + batch_size].to(device, memory_format=MEMORY_FORMAT)
+        base = val["base"][i : i + batch_size].to(device, memory_format=MEMORY_FORMAT) if "base" in val else None
         with autocast_for(device, dtype):
             outputs.append(generator(noisy, features, base).float().cpu())
     generator.train(was_training)
     ref = to_linear(val["reference"], val["features"], branch)
     linear = to_linear(torch.cat(outputs), val["features"], branch)
     per_patch = _per_patch(linear, ref)
-    return ({k: float(v.mean()) for k, v in per_patch.items()}, {k: per_patch[k] for k in ("relmse", "one_minus_ssim")},
-            linear)
+    return (
+        {k: float(v.mean()) for k, v in per_patch.items()},
+        {k: per_patch[k] for k in ("relmse", "one_minus_ssim")},
+        linear,
+    )
 
 
 def best_blend(output: Tensor, val: dict[str, Tensor], branch: str) -> tuple[float, float]:
@@ -73,9 +82,12 @@ def baseline_scores(val: dict[str, Tensor], branch: str) -> dict[str, float]:
     "noisy_relmse", ..., for a refiner "base_*" of its OIDN base, and "oidn_*" of OIDN's output for the
     branch where the store holds it (what the user compares with). Fixed for a run: computed once."""
     ref = to_linear(val["reference"], val["features"], branch)
-    return {f"{name}_{k}": float(v.mean())
-            for name in ("noisy", "base", "oidn") if name in val
-            for k, v in _per_patch(to_linear(val[name], val["features"], branch), ref).items()}
+    return {
+        f"{name}_{k}": float(v.mean())
+        for name in ("noisy", "base", "oidn")
+        if name in val
+        for k, v in _per_patch(to_linear(val[name], val["features"], branch), ref).items()
+    }
 
 
 def _per_patch(x: Tensor, ref: Tensor) -> dict[str, Tensor]:

@@ -6,6 +6,7 @@ stays valid for the old inputs). A task runs in root/.tmp/<key>.<host>.<pid>.<uu
 into place only after its `_task.json` manifest is written: an interrupted run never leaves a
 folder that looks done, and the next run resumes with the unfinished tasks.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -100,10 +101,14 @@ class Task:
     @functools.cached_property
     def key(self) -> str:
         """sha256 of stage, canonical params, inputs' keys and code version (stable across processes)."""
-        payload = dumps_canonical({
-            "stage": self.stage, "params": self.params, "code_version": self.code_version,
-            "inputs": {name: upstream.key for name, upstream in self.inputs.items()},
-        })
+        payload = dumps_canonical(
+            {
+                "stage": self.stage,
+                "params": self.params,
+                "code_version": self.code_version,
+                "inputs": {name: upstream.key for name, upstream in self.inputs.items()},
+            }
+        )
         return hashlib.sha256(payload.encode()).hexdigest()[:KEY_LENGTH]
 
     def __eq__(self, other: object) -> bool:
@@ -161,18 +166,28 @@ class TaskCache:
         start = time.perf_counter()
         try:
             summary = task.fn(work, {name: Path(p) for name, p in input_paths.items()}, **task.params)
-            write_json(work / MANIFEST, {
-                "files": {str(f.relative_to(work)): f.stat().st_size for f in sorted(work.rglob("*")) if f.is_file()},
-                "stage": task.stage, "label": task.label, "key": task.key, "params": task.params,
-                "inputs": {name: upstream.key for name, upstream in task.inputs.items()},
-                "code_version": task.code_version, "summary": summary,
-                "seconds": round(time.perf_counter() - start, 4),
-                "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            })
+            write_json(
+                work / MANIFEST,
+                {
+                    "files": {
+                        str(f.relative_to(work)): f.stat().st_size for f in sorted(work.rglob("*")) if f.is_file()
+                    },
+                    "stage": task.stage,
+                    "label": task.label,
+                    "key": task.key,
+                    "params": task.params,
+                    "inputs": {name: upstream.key for name, upstream in task.inputs.items()},
+                    "code_version": task.code_version,
+                    "summary": summary,
+                    "seconds": round(time.perf_counter() - start, 4),
+                    "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                },
+            )
         except Exception as exc:
             shutil.rmtree(work, ignore_errors=True)
-            raise TaskError(f"{task.stage} task {task.label!r} (key {task.key}) failed: "
-                            f"{type(exc).__name__}: {exc}") from exc
+            raise TaskError(
+                f"{task.stage} task {task.label!r} (key {task.key}) failed: {type(exc).__name__}: {exc}"
+            ) from exc
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
@@ -206,8 +221,13 @@ class TaskCache:
         return sorted(p for p in self.root.iterdir() if p.is_dir() and p.name != TMP_DIR)
 
     def _published(self, stage: str | None = None) -> list[Path]:
-        return [entry for folder in self._stage_dirs() if stage is None or folder.name == stage
-                for entry in sorted(folder.iterdir()) if (entry / MANIFEST).is_file()]
+        return [
+            entry
+            for folder in self._stage_dirs()
+            if stage is None or folder.name == stage
+            for entry in sorted(folder.iterdir())
+            if (entry / MANIFEST).is_file()
+        ]
 
     def entries(self) -> list[dict]:
         """Every published task: stage, label, key, bytes on disk, seconds it ran, created (UTC ISO time)."""
@@ -215,9 +235,17 @@ class TaskCache:
         for entry in self._published():
             manifest = read_json(entry / MANIFEST)
             size = sum(f.stat().st_size for f in entry.rglob("*") if f.is_file())
-            out.append({"stage": manifest["stage"], "label": manifest["label"], "key": manifest["key"],
-                        "bytes": size, "seconds": manifest["seconds"], "created": manifest["created"],
-                        "path": entry})
+            out.append(
+                {
+                    "stage": manifest["stage"],
+                    "label": manifest["label"],
+                    "key": manifest["key"],
+                    "bytes": size,
+                    "seconds": manifest["seconds"],
+                    "created": manifest["created"],
+                    "path": entry,
+                }
+            )
         return sorted(out, key=lambda e: (e["created"], e["stage"], e["key"]))
 
     def clear(self, stage: str | None = None) -> int:

@@ -6,6 +6,7 @@ independent tasks finish and publish, dependents of the failed one are skipped, 
 raises one TaskError listing every failed task (what it works on, the cause in one line), so the
 next run resumes with only what is left.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -70,8 +71,9 @@ def collect(tasks: list[Task]) -> dict[str, Task]:
     return ordered
 
 
-def run(tasks: list[Task], cache: TaskCache, *, scheduler: str = "sync", workers: int | None = None,
-        progress: bool = True) -> dict[str, Path]:
+def run(
+    tasks: list[Task], cache: TaskCache, *, scheduler: str = "sync", workers: int | None = None, progress: bool = True
+) -> dict[str, Path]:
     """Publish every task and its upstream tasks; return key -> published folder.
 
     scheduler: "sync" (in process, one at a time), "threads", "processes" (a local dask.distributed
@@ -95,9 +97,12 @@ def run(tasks: list[Task], cache: TaskCache, *, scheduler: str = "sync", workers
     failed = [out for out in outcomes.values() if isinstance(out, _Failed) and out.detail]
     skipped = sum(isinstance(out, _Failed) and not out.detail for out in outcomes.values())
     if failed:
-        lines = [f"{len(failed)} task(s) failed, {skipped} skipped for lack of their inputs; "
-                 f"{len(published)} of {len(graph)} are published and stay cached (fix the cause and rerun: "
-                 "only the rest runs):", *(f"  {out.message}" for out in failed)]
+        lines = [
+            f"{len(failed)} task(s) failed, {skipped} skipped for lack of their inputs; "
+            f"{len(published)} of {len(graph)} are published and stay cached (fix the cause and rerun: "
+            "only the rest runs):",
+            *(f"  {out.message}" for out in failed),
+        ]
         error = TaskError("\n".join(lines))
         for out in failed:
             error.add_note(out.detail)
@@ -141,8 +146,10 @@ def _run_local(pending, published, cache, scheduler, workers, bar) -> dict[str, 
         node = dask.delayed(functools.partial(_run_node, cache, task), pure=False)
         nodes[task.key] = node(_inputs_of(task, published, nodes), dask_key_name=_node_name(task))
     labels = {_node_name(task): task.label for task in pending}
-    callback = Callback(pretask=lambda key, dsk, state: bar.running(labels[key]),
-                        posttask=lambda key, result, dsk, state, worker: bar.finished(labels[key], result))
+    callback = Callback(
+        pretask=lambda key, dsk, state: bar.running(labels[key]),
+        posttask=lambda key, result, dsk, state, worker: bar.finished(labels[key], result),
+    )
     options = {"num_workers": workers} if scheduler == "threads" and workers else {}
     with callback:
         results = dask.compute(*nodes.values(), scheduler=scheduler, **options)
@@ -153,23 +160,32 @@ def _run_distributed(pending, published, cache, scheduler, workers, bar) -> dict
     from distributed import Client, LocalCluster, as_completed
 
     if scheduler == "processes":
-        cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                               # CRITICAL: a task's failure comes back as its value; what the workers log at
-                               # shutdown (a heartbeat racing the closing scheduler) is noise after a good run
-                               dashboard_address=None, silence_logs=logging.CRITICAL)
+        cluster = LocalCluster(
+            n_workers=workers or default_workers(),
+            threads_per_worker=1,
+            processes=True,
+            # CRITICAL: a task's failure comes back as its value; what the workers log at
+            # shutdown (a heartbeat racing the closing scheduler) is noise after a good run
+            dashboard_address=None,
+            silence_logs=logging.CRITICAL,
+        )
         client = Client(cluster)
     else:
         try:
             cluster, client = None, Client(scheduler)
         except OSError as error:  # something answers there, but not as a dask scheduler
-            raise SchedulerError(f"could not connect to the dask scheduler at {scheduler} (run.scheduler): "
-                                 f"{error}") from error
+            raise SchedulerError(
+                f"could not connect to the dask scheduler at {scheduler} (run.scheduler): {error}"
+            ) from error
     try:
         futures = {}
         for task in pending:
-            futures[task.key] = client.submit(functools.partial(_run_node, cache, task),
-                                              _inputs_of(task, published, futures),
-                                              key=_node_name(task), pure=False)
+            futures[task.key] = client.submit(
+                functools.partial(_run_node, cache, task),
+                _inputs_of(task, published, futures),
+                key=_node_name(task),
+                pure=False,
+            )
         label_of = {future.key: task.label for future, task in zip(futures.values(), pending)}
         bar.running(f"{len(pending)} task(s) on {scheduler}")
         for future in as_completed(list(futures.values())):
@@ -195,13 +211,17 @@ def _probe(address: str) -> None:
             return
         host, port = parse_host_port(location)
     except ValueError as error:
-        raise SchedulerError(f"run.scheduler = {address!r} is not sync, threads, processes or a dask scheduler "
-                             f"address such as tcp://host:8786 ({error})") from None
+        raise SchedulerError(
+            f"run.scheduler = {address!r} is not sync, threads, processes or a dask scheduler "
+            f"address such as tcp://host:8786 ({error})"
+        ) from None
     try:
         socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S).close()
     except OSError as error:
-        raise SchedulerError(f"no dask scheduler answers at {address} (run.scheduler): {error}. Start one "
-                             "(`dask scheduler`) or use run.scheduler = processes, threads or sync") from None
+        raise SchedulerError(
+            f"no dask scheduler answers at {address} (run.scheduler): {error}. Start one "
+            "(`dask scheduler`) or use run.scheduler = processes, threads or sync"
+        ) from None
 
 
 class _Bar:
@@ -210,8 +230,14 @@ class _Bar:
     def __init__(self, total: int, done: int, enabled: bool):
         self.enabled = enabled
         self.failed = self.skipped = 0
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), console=Console(stderr=True), disable=not enabled)
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=Console(stderr=True),
+            disable=not enabled,
+        )
         self.bar = self.progress.add_task("starting", total=total, completed=done)
 
     def __enter__(self) -> _Bar:
@@ -235,5 +261,6 @@ class _Bar:
         if self.enabled and not self.progress.console.is_terminal:
             # a live bar draws nothing into a log file or CI output: one plain line per task instead
             task = self.progress.tasks[0]
-            self.progress.console.print(f"[{int(task.completed)}/{int(task.total)}] done {label}{trouble}",
-                                        markup=False, highlight=False)
+            self.progress.console.print(
+                f"[{int(task.completed)}/{int(task.total)}] done {label}{trouble}", markup=False, highlight=False
+            )

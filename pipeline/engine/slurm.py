@@ -5,6 +5,7 @@ a render already uses every core it is given) on `cluster.cores` CPUs, `cluster.
 `cluster.gpus` GPUs. The scheduler runs inside the `admc-pipe` process, so it lives as long as the
 command; the workers must see the same `run.workdir` (a shared filesystem), where `log_dir` lies.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -27,11 +28,17 @@ def job_options(cluster: ClusterConfig, log_dir: Path) -> dict:
     jobs' logs under `log_dir`."""
     gres = [f"--gres=gpu:{cluster.gpus}"] if cluster.gpus else []
     return {
-        "cores": 1, "processes": 1,  # worker threads: one task at a time per job
-        "job_cpu": cluster.cores, "memory": cluster.memory, "walltime": cluster.walltime,
-        "queue": cluster.queue or None, "account": cluster.account or None, "interface": cluster.interface or None,
+        "cores": 1,
+        "processes": 1,  # worker threads: one task at a time per job
+        "job_cpu": cluster.cores,
+        "memory": cluster.memory,
+        "walltime": cluster.walltime,
+        "queue": cluster.queue or None,
+        "account": cluster.account or None,
+        "interface": cluster.interface or None,
         "job_extra_directives": [*gres, *cluster.job_directives],
-        "job_name": "admc", "python": sys.executable,
+        "job_name": "admc",
+        "python": sys.executable,
         "log_directory": str(log_dir),
     }
 
@@ -41,8 +48,10 @@ def slurm_cluster(cluster: ClusterConfig, log_dir: Path):
     try:
         from dask_jobqueue import SLURMCluster
     except ImportError:
-        raise ClusterError("config key 'run.scheduler' is 'slurm', which needs the optional dask-jobqueue "
-                           "package: pip install 'admc[cluster]' (or '.[cluster]' in a checkout)") from None
+        raise ClusterError(
+            "config key 'run.scheduler' is 'slurm', which needs the optional dask-jobqueue "
+            "package: pip install 'admc[cluster]' (or '.[cluster]' in a checkout)"
+        ) from None
     return SLURMCluster(**job_options(cluster, log_dir))
 
 

@@ -6,6 +6,7 @@ only ever calls `denoise` and `synchronize`, and prints `name` and `device`.
 NVIDIA's OptiX denoiser joins through Mitsuba (`mi.OptixDenoiser`) where the `cuda_ad_rgb` variant
 runs; `optix_unavailable_reason` says why not elsewhere, so a report can state it.
 """
+
 from __future__ import annotations
 
 import os
@@ -23,8 +24,8 @@ from admc.pipeline.render.variants import available_variants
 
 @runtime_checkable
 class Denoiser(Protocol):
-    name: str      # column name in the tables, e.g. "noisy", "oidn", "admc"
-    device: str    # what computes it, e.g. "cpu (AMD EPYC 9R14, 2 threads)", "cuda:0 (NVIDIA H100)"
+    name: str  # column name in the tables, e.g. "noisy", "oidn", "admc"
+    device: str  # what computes it, e.g. "cpu (AMD EPYC 9R14, 2 threads)", "cuda:0 (NVIDIA H100)"
     # optional: `source`, the weights file a learned denoiser came from (reported with the tables)
 
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
@@ -60,6 +61,7 @@ def noisy_color(layers: dict[str, np.ndarray]) -> np.ndarray:
 
 class NoisyInput:
     """The baseline row: the raw path-traced image, untouched."""
+
     name = "noisy"
 
     def __init__(self) -> None:
@@ -162,6 +164,7 @@ class OptixDenoiser:
     is kept per size (created by the warm-up run, outside the timed runs). Its time includes the
     host<->device copies, as the CUDA OIDN's does.
     """
+
     name = "optix"
 
     def __init__(self) -> None:
@@ -210,15 +213,17 @@ def _gpu_name() -> str:
     import subprocess
 
     try:
-        query = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
-                               capture_output=True, text=True, timeout=10)
+        query = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True, timeout=10
+        )
         return query.stdout.splitlines()[0].strip() if query.returncode == 0 and query.stdout else "GPU"
     except (OSError, subprocess.TimeoutExpired):
         return "GPU"
 
 
-def time_denoiser(denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 1,
-                  warmup: int = 1) -> tuple[np.ndarray, float]:
+def time_denoiser(
+    denoiser: Denoiser, layers: dict[str, np.ndarray], repeats: int = 1, warmup: int = 1
+) -> tuple[np.ndarray, float]:
     """(image, seconds): `warmup` untimed runs, then the median of `repeats` synchronised runs.
 
     Warm-up keeps one-off costs (JIT, weight upload, allocator growth) out of the figure; each timed

@@ -16,6 +16,7 @@ Display rules (also printed on the page):
   size the embedded PNG is the full-resolution image, the overview thumbnails are the same PNG
   scaled by the browser, and the zoom crops it pixel for pixel.
 """
+
 from __future__ import annotations
 
 import base64
@@ -34,10 +35,10 @@ from admc.pipeline.evaluation.table1 import Cell, Table1
 
 from admc.common.metrics import GAMMA, RELMSE_EPS as HEAT_EPS, to_ldr  # one definition: heat maps show relMSE per pixel
 
-MAX_EMBED = (1280, 720)          # (width, height) of the largest image embedded at full resolution
-THUMB = (240, 240)               # (width, height) box the overview thumbnails fit into
-THUMB_MIN = 16                   # thinnest thumbnail side in CSS pixels (stretched beyond the aspect)
-HEAT_LOG10_RANGE = (-5.0, 2.0)   # colour scale ends of the heat maps, in decades
+MAX_EMBED = (1280, 720)  # (width, height) of the largest image embedded at full resolution
+THUMB = (240, 240)  # (width, height) box the overview thumbnails fit into
+THUMB_MIN = 16  # thinnest thumbnail side in CSS pixels (stretched beyond the aspect)
+HEAT_LOG10_RANGE = (-5.0, 2.0)  # colour scale ends of the heat maps, in decades
 HEAT_COLORMAP = "inferno"
 MAGENTA = (255, 0, 255)
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -46,10 +47,11 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 @dataclass
 class ReportImage:
     """One scene at one spp: its reference and every denoiser's output (including "noisy")."""
+
     scene_id: str
     spp: int
-    reference: np.ndarray                 # (H, W, 3) float32 linear HDR
-    outputs: dict[str, np.ndarray]        # denoiser name -> (H, W, 3) linear HDR; includes "noisy"
+    reference: np.ndarray  # (H, W, 3) float32 linear HDR
+    outputs: dict[str, np.ndarray]  # denoiser name -> (H, W, 3) linear HDR; includes "noisy"
     metrics: dict[str, dict[str, float]]  # denoiser name -> {"1-SSIM": .., "PSNR": .., "relMSE": ..}
 
 
@@ -57,12 +59,22 @@ class ReportImage:
 class ReportGroup:
     """One ReportImage as the page shows it: its figures with the PNGs encoded, and its NaN/Inf notes.
     Small, so a caller keeps these instead of the float images they were made from."""
+
     body: str
     notes: tuple[str, ...]
 
 
-def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions: dict[str, str],
-                 plots: list[Path], groups: list[ReportGroup], device: str, notes: list[str] = ()) -> Path:
+def write_report(
+    out_dir: Path,
+    *,
+    title: str,
+    table: Table1,
+    metric_definitions: dict[str, str],
+    plots: list[Path],
+    groups: list[ReportGroup],
+    device: str,
+    notes: list[str] = (),
+) -> Path:
     """Write out_dir/index.html and return its path. Table 1 and the plots come first (readers come for
     them), then the metric definitions and notes, then the `report_group` image comparisons with zoom."""
     notes = list(notes) + [note for group in groups for note in group.notes]
@@ -75,8 +87,9 @@ def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions
         notes="\n".join(f"<li>{_esc(n)}</li>" for n in notes),
         table=table_html(table),
         plots="\n".join(_plot_html(Path(p)) for p in plots),
-        groups="\n".join(f'<section class="group" id="group-{index}">{group.body}</section>'
-                          for index, group in enumerate(groups)),
+        groups="\n".join(
+            f'<section class="group" id="group-{index}">{group.body}</section>' for index, group in enumerate(groups)
+        ),
         css=_template("report.css"),
         js=_template("report.js"),
     )
@@ -91,15 +104,20 @@ def write_report(out_dir: Path, *, title: str, table: Table1, metric_definitions
 
 # ---------------------------------------------------------------- Table 1
 
+
 def table_html(table: Table1) -> str:
     """Table 1 and its notes as HTML: the cells of the Table1 object, best values <strong>."""
+
     def cell(tag: str, c: Cell) -> str:
         return f"<{tag}><strong>{_esc(c.text)}</strong></{tag}>" if c.bold else f"<{tag}>{_esc(c.text)}</{tag}>"
+
     out = ["<table>", "<thead><tr>" + "".join(cell("th", Cell(h)) for h in table.head) + "</tr></thead><tbody>"]
     out += ["<tr>" + "".join(cell("td", c) for c in row) + "</tr>" for row in table.rows]
     out.append("</tbody></table>")
-    out += [f"<p><strong>{_esc(n.label)}</strong> {_esc(n.text)}</p>" if n.label else f"<p>{_esc(n.text)}</p>"
-            for n in table.notes]
+    out += [
+        f"<p><strong>{_esc(n.label)}</strong> {_esc(n.text)}</p>" if n.label else f"<p>{_esc(n.text)}</p>"
+        for n in table.notes
+    ]
     return "\n".join(out)
 
 
@@ -108,6 +126,7 @@ def _esc(text: object) -> str:
 
 
 # ---------------------------------------------------------------- images
+
 
 def display_rgb(linear: np.ndarray) -> np.ndarray:
     """uint8 (h, w, 3) of a linear HDR image as embedded: fitted into MAX_EMBED, tone-mapped, NaN/Inf magenta."""
@@ -127,8 +146,9 @@ def heat_rgb(output: np.ndarray, reference: np.ndarray) -> np.ndarray:
     shows the mean error of each block rather than the error of blurred images.
     """
     with np.errstate(over="ignore", invalid="ignore"):
-        err = np.mean((output.astype(np.float64) - reference) ** 2 / (reference.astype(np.float64) ** 2 + HEAT_EPS),
-                      axis=2)
+        err = np.mean(
+            (output.astype(np.float64) - reference) ** 2 / (reference.astype(np.float64) ** 2 + HEAT_EPS), axis=2
+        )
     bad = ~np.isfinite(err)
     size = embed_size(output.shape)
     err = _resize(np.where(bad, 0.0, err).astype(np.float32)[..., None], size)[..., 0]
@@ -151,8 +171,13 @@ def _resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Box-filter each channel of a float (H, W, C) image to (width, height) = size."""
     if (image.shape[1], image.shape[0]) == size:
         return image
-    return np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c])).resize(size, Image.Resampling.BOX))
-                     for c in range(image.shape[2])], axis=2)
+    return np.stack(
+        [
+            np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c])).resize(size, Image.Resampling.BOX))
+            for c in range(image.shape[2])
+        ],
+        axis=2,
+    )
 
 
 def _lut() -> np.ndarray:
@@ -187,11 +212,13 @@ def _figure(uri: str, caption: str, lines: list[str], size: tuple[int, int], *, 
     extra = "".join(f"<div>{_esc(line)}</div>" for line in lines)
     if warn:
         extra += f'<div class="warn">{_esc(warn)}</div>'
-    return (f'<figure class="fig"><figcaption>{_esc(caption)}</figcaption>'
-            f'<div class="frame"><img class="px{upscaled}" src="{uri}" width="{width}" height="{height}" '
-            f'alt="{_esc(caption)}"><div class="marker" hidden></div></div>'
-            f'<canvas class="zoom" width="160" height="160" hidden></canvas>'
-            f'<div class="metrics">{extra}</div></figure>')
+    return (
+        f'<figure class="fig"><figcaption>{_esc(caption)}</figcaption>'
+        f'<div class="frame"><img class="px{upscaled}" src="{uri}" width="{width}" height="{height}" '
+        f'alt="{_esc(caption)}"><div class="marker" hidden></div></div>'
+        f'<canvas class="zoom" width="160" height="160" hidden></canvas>'
+        f'<div class="metrics">{extra}</div></figure>'
+    )
 
 
 def report_group(item: ReportImage) -> ReportGroup:
@@ -199,7 +226,7 @@ def report_group(item: ReportImage) -> ReportGroup:
     _check(item)
     notes = []
     reference = np.asarray(item.reference, dtype=np.float32)
-    names = sorted(item.outputs, key=lambda n: n != "noisy")   # noisy first, then the given order
+    names = sorted(item.outputs, key=lambda n: n != "noisy")  # noisy first, then the given order
     size = embed_size(reference.shape)
     where = f"{item.scene_id} @ {item.spp} spp"
     images, heats = [], []
@@ -215,25 +242,40 @@ def report_group(item: ReportImage) -> ReportGroup:
     ref_bad = int(np.count_nonzero(~np.all(np.isfinite(reference), axis=2)))
     if ref_bad:
         notes.append(f"{where}: the reference has {ref_bad} NaN/Inf pixels, shown magenta.")
-    images.append(_figure(_png_uri(display_rgb(reference)), "reference", [], size,
-                          warn=f"{ref_bad} NaN/Inf pixels (magenta)" if ref_bad else ""))
+    images.append(
+        _figure(
+            _png_uri(display_rgb(reference)),
+            "reference",
+            [],
+            size,
+            warn=f"{ref_bad} NaN/Inf pixels (magenta)" if ref_bad else "",
+        )
+    )
     height, width = reference.shape[:2]
-    shown = f"{width}x{height}" if size == (width, height) else \
-        f"{width}x{height}, embedded box-downscaled to {size[0]}x{size[1]}"
-    return ReportGroup(f'<h3>{_esc(item.scene_id)} &middot; {item.spp} spp <small>({shown})</small></h3>'
-                       f'<div class="row">{"".join(images)}</div>'
-                       f'<div class="row">{"".join(heats)}{_legend()}</div>', tuple(notes))
+    shown = (
+        f"{width}x{height}"
+        if size == (width, height)
+        else f"{width}x{height}, embedded box-downscaled to {size[0]}x{size[1]}"
+    )
+    return ReportGroup(
+        f"<h3>{_esc(item.scene_id)} &middot; {item.spp} spp <small>({shown})</small></h3>"
+        f'<div class="row">{"".join(images)}</div>'
+        f'<div class="row">{"".join(heats)}{_legend()}</div>',
+        tuple(notes),
+    )
 
 
 def _legend() -> str:
     lo, hi = HEAT_LOG10_RANGE
     bar = _png_uri(_lut()[None, :, :])
     ticks = "".join(f"<span>1e{d}</span>" for d in range(int(lo), int(hi) + 1))
-    return (f'<figure class="legend"><figcaption>relative squared error</figcaption>'
-            f'<img class="bar" src="{bar}" width="240" height="14" alt="colour scale">'
-            f'<div class="ticks">{ticks}</div>'
-            f'<div class="metrics">mean<sub>c</sub> (x&minus;ref)&sup2; / (ref&sup2; + {HEAT_EPS:g}), log scale'
-            f'<br>magenta: NaN/Inf</div></figure>')
+    return (
+        f'<figure class="legend"><figcaption>relative squared error</figcaption>'
+        f'<img class="bar" src="{bar}" width="240" height="14" alt="colour scale">'
+        f'<div class="ticks">{ticks}</div>'
+        f'<div class="metrics">mean<sub>c</sub> (x&minus;ref)&sup2; / (ref&sup2; + {HEAT_EPS:g}), log scale'
+        f"<br>magenta: NaN/Inf</div></figure>"
+    )
 
 
 def _fmt(value: float) -> str:
@@ -247,8 +289,10 @@ def _plot_html(path: Path) -> str:
     if not data.startswith(PNG_SIGNATURE):
         raise ValueError(f"plot {path}: not a PNG file")
     uri = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
-    return (f'<figure class="plot"><img src="{uri}" alt="{_esc(path.stem)}">'
-            f'<figcaption>{_esc(path.stem)}</figcaption></figure>')
+    return (
+        f'<figure class="plot"><img src="{uri}" alt="{_esc(path.stem)}">'
+        f"<figcaption>{_esc(path.stem)}</figcaption></figure>"
+    )
 
 
 _DISPLAY_RULES = (

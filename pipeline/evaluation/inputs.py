@@ -1,4 +1,5 @@
 """The test set on disk: the render stage's noisy EXRs, their references and sidecars, checked and read."""
+
 from __future__ import annotations
 
 import json
@@ -25,8 +26,10 @@ def _sidecar(path: Path, scene_id: str, reference: bool) -> dict:
     if missing:
         raise EvalError(f"{path}: sidecar lacks {', '.join(missing)}")
     if side["scene_id"] != scene_id or bool(side["reference"]) != reference:
-        raise EvalError(f"{path}: sidecar is for scene {side['scene_id']!r} (reference={side['reference']}), "
-                        f"expected {scene_id!r} (reference={reference})")
+        raise EvalError(
+            f"{path}: sidecar is for scene {side['scene_id']!r} (reference={side['reference']}), "
+            f"expected {scene_id!r} (reference={reference})"
+        )
     return side
 
 
@@ -54,8 +57,17 @@ def find_test_images(renders_dir: Path, scene_ids: list[str] | None = None) -> l
             raise EvalError(f"{folder}: no noisy renders (spp*.exr)")
         for path in noisy:
             side = _sidecar(path.with_suffix(".json"), folder.name, reference=False)
-            images.append(TestImage(folder.name, int(side["spp"]), path, reference, float(side["render_seconds"]),
-                                    int(ref_side.get("spp", 0)), float(ref_side["render_seconds"])))
+            images.append(
+                TestImage(
+                    folder.name,
+                    int(side["spp"]),
+                    path,
+                    reference,
+                    float(side["render_seconds"]),
+                    int(ref_side.get("spp", 0)),
+                    float(ref_side["render_seconds"]),
+                )
+            )
     return sorted(images, key=lambda t: (t.scene_id, t.spp))
 
 
@@ -63,7 +75,9 @@ def read_reference(path: Path) -> tuple[np.ndarray, float]:
     """(diffuse + specular, its reference floor) of a reference EXR; the floor is NaN where the file has
     no variance layers (a reference rendered elsewhere)."""
     present = exr_layers(path)
-    layers = read_exr(path, [name for name in ("diffuse", "specular", "diffuse_var", "specular_var") if name in present])
+    layers = read_exr(
+        path, [name for name in ("diffuse", "specular", "diffuse_var", "specular_var") if name in present]
+    )
     radiance = noisy_color(layers)
     variances = [layers[name] for name in ("diffuse_var", "specular_var") if name in layers]
     return radiance, reference_floor(sum(variances), radiance) if variances else math.nan

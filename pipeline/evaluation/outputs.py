@@ -1,5 +1,6 @@
 """The evaluation's files, each rendered from the result objects: per-image and Table 1 CSV, Table 1
 Markdown, results.json, equal time, the error-against-time plot."""
+
 from __future__ import annotations
 
 import csv
@@ -13,15 +14,25 @@ import numpy as np
 from admc.common.metrics import METRICS, NONFINITE_RULE, reference_floor
 from admc.pipeline.evaluation.baselines import cpu_description
 from admc.pipeline.evaluation.plot import plot_error_vs_time
-from admc.pipeline.evaluation.records import (BEST_PERCENT_RULE, FLOOR_KEYS, FLOOR_RULE, PATH_TRACER, EvalResult,
-                                              ImageRecord, denoising_methods, mean_curve)
+from admc.pipeline.evaluation.records import (
+    BEST_PERCENT_RULE,
+    FLOOR_KEYS,
+    FLOOR_RULE,
+    PATH_TRACER,
+    EvalResult,
+    ImageRecord,
+    denoising_methods,
+    mean_curve,
+)
 from admc.pipeline.evaluation.table1 import build_table1, table1_markdown
 from admc.stores.atomic import publishing, write_json
 
-TIMING_RULE = ("denoise seconds = median of {repeats} timed run(s), each bracketed by the denoiser's synchronize(), "
-               "after {warmup} warm-up run(s) of each denoiser per input layout (the first image with its layers' "
-               "names and sizes); total seconds = the input's render time (from its sidecar) + denoise seconds; "
-               "the path tracer's total is its render time alone.")
+TIMING_RULE = (
+    "denoise seconds = median of {repeats} timed run(s), each bracketed by the denoiser's synchronize(), "
+    "after {warmup} warm-up run(s) of each denoiser per input layout (the first image with its layers' "
+    "names and sizes); total seconds = the input's render time (from its sidecar) + denoise seconds; "
+    "the path tracer's total is its render time alone."
+)
 
 
 def _write_text(path: Path, text: str) -> Path:
@@ -67,8 +78,16 @@ def _table_csv(result: EvalResult, out_dir: Path) -> Path:
             line = [row.spp, row.method, row.device, row.n_images]
             for m in METRICS:
                 line += [repr(row.average[m.key]), repr(row.best_percent[m.key])]
-            writer.writerow(line + [repr(row.denoise_seconds), repr(row.total_seconds), row.nonfinite,
-                                    repr(row.reference_floor), repr(row.relmse_minus_floor)])
+            writer.writerow(
+                line
+                + [
+                    repr(row.denoise_seconds),
+                    repr(row.total_seconds),
+                    row.nonfinite,
+                    repr(row.reference_floor),
+                    repr(row.relmse_minus_floor),
+                ]
+            )
     return path
 
 
@@ -87,9 +106,20 @@ def equal_time(result: EvalResult) -> list[dict]:
             raw_spp = min(raw, key=lambda s: abs(math.log(max(raw[s][0], 1e-12) / max(cost, 1e-12))))
             at_spp = [r for r in mine if r.spp == spp]
             wins = sum(r.relmse < raw_by_scene[(r.scene_id, raw_spp)] for r in at_spp)
-            rows.append({"method": method, "spp": spp, "seconds": cost, "relmse": err, "raw_spp": raw_spp,
-                         "raw_seconds": raw[raw_spp][0], "raw_relmse": raw[raw_spp][1],
-                         "beats_raw": err < raw[raw_spp][1], "scenes_won": wins, "scenes": len(at_spp)})
+            rows.append(
+                {
+                    "method": method,
+                    "spp": spp,
+                    "seconds": cost,
+                    "relmse": err,
+                    "raw_spp": raw_spp,
+                    "raw_seconds": raw[raw_spp][0],
+                    "raw_relmse": raw[raw_spp][1],
+                    "beats_raw": err < raw[raw_spp][1],
+                    "scenes_won": wins,
+                    "scenes": len(at_spp),
+                }
+            )
     return rows
 
 
@@ -115,70 +145,126 @@ def equal_time_between(curves: dict[str, dict[int, tuple[float, float]]]) -> lis
                 if other == method:
                     continue
                 theirs = error_at(other_curve, seconds)
-                rows.append({"method": method, "spp": spp, "seconds": seconds, "relmse": relmse, "other": other,
-                             "other_relmse": theirs, "ratio": None if theirs is None else relmse / theirs})
+                rows.append(
+                    {
+                        "method": method,
+                        "spp": spp,
+                        "seconds": seconds,
+                        "relmse": relmse,
+                        "other": other,
+                        "other_relmse": theirs,
+                        "ratio": None if theirs is None else relmse / theirs,
+                    }
+                )
     return rows
 
 
 def _equal_time_md(rows: list[dict], between: list[dict], reference_cost: dict | None, out_dir: Path) -> Path:
-    lines = ["# Equal time: denoised against the raw path tracer", "",
-             "For each denoiser and input spp, the raw path tracer's spp whose mean cost is nearest "
-             "(on a log scale) to the denoiser's mean cost (render + denoise), and whether the denoised "
-             "image has the lower mean relMSE. Scenes won: scenes where the denoised image beats that "
-             "raw render of the same scene.", "",
-             *([f"The references ({'/'.join(map(str, reference_cost['spp']))} spp, relMSE 0 by definition) "
-                f"took {reference_cost['seconds']:.4g} s per scene on average.", ""] if reference_cost else []),
-             "| denoiser | spp | seconds | relMSE | raw spp | raw seconds | raw relMSE | beats raw | scenes won |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Equal time: denoised against the raw path tracer",
+        "",
+        "For each denoiser and input spp, the raw path tracer's spp whose mean cost is nearest "
+        "(on a log scale) to the denoiser's mean cost (render + denoise), and whether the denoised "
+        "image has the lower mean relMSE. Scenes won: scenes where the denoised image beats that "
+        "raw render of the same scene.",
+        "",
+        *(
+            [
+                f"The references ({'/'.join(map(str, reference_cost['spp']))} spp, relMSE 0 by definition) "
+                f"took {reference_cost['seconds']:.4g} s per scene on average.",
+                "",
+            ]
+            if reference_cost
+            else []
+        ),
+        "| denoiser | spp | seconds | relMSE | raw spp | raw seconds | raw relMSE | beats raw | scenes won |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['raw_spp']} | "
-                     f"{r['raw_seconds']:.4g} | {r['raw_relmse']:.4g} | {'yes' if r['beats_raw'] else 'no'} | "
-                     f"{r['scenes_won']}/{r['scenes']} |")
-    lines += ["", "# Equal time: denoiser against denoiser", "",
-              "For each denoiser and input spp, every other denoiser's relMSE at the same mean cost (render + "
-              "denoise), interpolated on its error-against-time curve (linearly in log time and log relMSE); "
-              "\"outside\" where that cost lies outside its curve. Ratio below 1: the first denoiser is better "
-              "at equal time.", "",
-              "| denoiser | spp | seconds | relMSE | other | other's relMSE at these seconds | ratio |",
-              "|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['raw_spp']} | "
+            f"{r['raw_seconds']:.4g} | {r['raw_relmse']:.4g} | {'yes' if r['beats_raw'] else 'no'} | "
+            f"{r['scenes_won']}/{r['scenes']} |"
+        )
+    lines += [
+        "",
+        "# Equal time: denoiser against denoiser",
+        "",
+        "For each denoiser and input spp, every other denoiser's relMSE at the same mean cost (render + "
+        "denoise), interpolated on its error-against-time curve (linearly in log time and log relMSE); "
+        '"outside" where that cost lies outside its curve. Ratio below 1: the first denoiser is better '
+        "at equal time.",
+        "",
+        "| denoiser | spp | seconds | relMSE | other | other's relMSE at these seconds | ratio |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in between:
-        theirs, ratio = ("outside", "–") if r["other_relmse"] is None else (f"{r['other_relmse']:.4g}",
-                                                                           f"{r['ratio']:.3f}")
-        lines.append(f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['other']} | "
-                     f"{theirs} | {ratio} |")
+        theirs, ratio = (
+            ("outside", "–") if r["other_relmse"] is None else (f"{r['other_relmse']:.4g}", f"{r['ratio']:.3f}")
+        )
+        lines.append(
+            f"| {r['method']} | {r['spp']} | {r['seconds']:.4g} | {r['relmse']:.4g} | {r['other']} | "
+            f"{theirs} | {ratio} |"
+        )
     return _write_text(out_dir / "equal_time.md", "\n".join(lines) + "\n")
 
 
 def write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int) -> dict[str, Path]:
     equal = equal_time(result)
-    between = equal_time_between({m: mean_curve([r for r in result.records if r.method == m])
-                                  for m in denoising_methods(result)})
-    files = {"per_image_csv": _write_per_image_csv(result, out_dir), "table1_csv": _table_csv(result, out_dir),
-             "table1_md": _table_md(result, out_dir), "error_vs_time": plot_error_vs_time(result, out_dir),
-             "equal_time": _equal_time_md(equal, between, result.reference_cost, out_dir),
-             "results_json": out_dir / "results.json"}
-    write_json(files["results_json"], {
-        "metrics": {m.key: {"label": m.label, "lower_is_better": m.lower_is_better, "definition": m.definition}
-                    for m in METRICS},
-        "nonfinite_rule": NONFINITE_RULE,
-        "reference_floor": {"rule": FLOOR_RULE, "definition": inspect.getdoc(reference_floor),
-                            "per_scene": {r.scene_id: _floor_known({"reference_floor": r.reference_floor})["reference_floor"]
-                                          for r in result.path_tracer}},
-        "best_percent_rule": BEST_PERCENT_RULE,
-        "timing": {"repeats": repeats, "warmup": warmup, "rule": TIMING_RULE.format(repeats=repeats, warmup=warmup)},
-        "devices": result.devices,
-        "not_run": result.not_run,
-        "weights": result.sources,
-        "host": cpu_description(),
-        "table": [_floor_known(asdict(row)) for row in result.table],
-        "images": [_record_dict(r, out_dir) for r in result.records],
-        "path_tracer": [_record_dict(r, out_dir) for r in result.path_tracer],
-        "equal_time": equal,
-        "equal_time_between_denoisers": between,
-        "reference_cost": result.reference_cost,
-        "scenes": [{"scene_id": s.scene_id, "reference": str(s.reference.relative_to(out_dir)),
+    between = equal_time_between(
+        {m: mean_curve([r for r in result.records if r.method == m]) for m in denoising_methods(result)}
+    )
+    files = {
+        "per_image_csv": _write_per_image_csv(result, out_dir),
+        "table1_csv": _table_csv(result, out_dir),
+        "table1_md": _table_md(result, out_dir),
+        "error_vs_time": plot_error_vs_time(result, out_dir),
+        "equal_time": _equal_time_md(equal, between, result.reference_cost, out_dir),
+        "results_json": out_dir / "results.json",
+    }
+    write_json(
+        files["results_json"],
+        {
+            "metrics": {
+                m.key: {"label": m.label, "lower_is_better": m.lower_is_better, "definition": m.definition}
+                for m in METRICS
+            },
+            "nonfinite_rule": NONFINITE_RULE,
+            "reference_floor": {
+                "rule": FLOOR_RULE,
+                "definition": inspect.getdoc(reference_floor),
+                "per_scene": {
+                    r.scene_id: _floor_known({"reference_floor": r.reference_floor})["reference_floor"]
+                    for r in result.path_tracer
+                },
+            },
+            "best_percent_rule": BEST_PERCENT_RULE,
+            "timing": {
+                "repeats": repeats,
+                "warmup": warmup,
+                "rule": TIMING_RULE.format(repeats=repeats, warmup=warmup),
+            },
+            "devices": result.devices,
+            "not_run": result.not_run,
+            "weights": result.sources,
+            "host": cpu_description(),
+            "table": [_floor_known(asdict(row)) for row in result.table],
+            "images": [_record_dict(r, out_dir) for r in result.records],
+            "path_tracer": [_record_dict(r, out_dir) for r in result.path_tracer],
+            "equal_time": equal,
+            "equal_time_between_denoisers": between,
+            "reference_cost": result.reference_cost,
+            "scenes": [
+                {
+                    "scene_id": s.scene_id,
+                    "reference": str(s.reference.relative_to(out_dir)),
                     "inputs": {str(k): str(v.relative_to(out_dir)) for k, v in s.inputs.items()},
-                    "outputs": {str(k): {m: str(p.relative_to(out_dir)) for m, p in v.items()}
-                                for k, v in s.outputs.items()}} for s in result.scenes],
-    })
+                    "outputs": {
+                        str(k): {m: str(p.relative_to(out_dir)) for m, p in v.items()} for k, v in s.outputs.items()
+                    },
+                }
+                for s in result.scenes
+            ],
+        },
+    )
     return files

@@ -1,4 +1,5 @@
 """Error against time: the raw path tracer's curve and each denoiser's, relMSE over render + denoise seconds."""
+
 from __future__ import annotations
 
 import math

@@ -4,6 +4,7 @@ Every output (Markdown, CSV, JSON, the plot, the HTML page) is rendered from the
 parsed back from a file that was written. The float images themselves live only in a ScoredImage, one
 test image at a time; what stays behind are the paths of the EXRs they were written to.
 """
+
 from __future__ import annotations
 
 import math
@@ -22,15 +23,18 @@ TIE_RTOL, TIE_ATOL = 1e-6, 1e-12
 BEST_PERCENT_RULE = (
     f"B.P. = share of the images of that spp on which a method has the best value of the metric. "
     f"Values within rtol {TIE_RTOL:g} (or atol {TIE_ATOL:g}) of the best are ties: each of the k tied "
-    f"methods gets 1/k of that image's credit, so every spp/metric column sums to 100 %.")
+    f"methods gets 1/k of that image's credit, so every spp/metric column sums to 100 %."
+)
 FLOOR_ROW = "reference floor"
 FLOOR_KEYS = frozenset({"reference_floor", "relmse_minus_floor"})
 FLOOR_COLUMN = "relMSE − floor"
-FLOOR_RULE = ("The references are renders too: the reference floor row is their own expected relMSE against the "
-              "converged image (metrics.reference_floor, from their variance layers; NaN where a reference has "
-              "none). Every relMSE above is measured against these references and so carries about this much "
-              "of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
-              "error against the converged image (it can fall below 0 by chance).")
+FLOOR_RULE = (
+    "The references are renders too: the reference floor row is their own expected relMSE against the "
+    "converged image (metrics.reference_floor, from their variance layers; NaN where a reference has "
+    "none). Every relMSE above is measured against these references and so carries about this much "
+    "of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
+    "error against the converged image (it can fall below 0 by chance)."
+)
 
 
 class EvalError(AdmcError, ValueError):
@@ -40,6 +44,7 @@ class EvalError(AdmcError, ValueError):
 @dataclass(frozen=True)
 class TestImage:
     """One noisy render to denoise and the reference it is scored against."""
+
     __test__ = False  # not a pytest test class
 
     scene_id: str
@@ -47,13 +52,14 @@ class TestImage:
     noisy_path: Path
     reference_path: Path
     render_seconds: float
-    reference_spp: int = 0                 # 0: unknown
-    reference_seconds: float = math.nan    # the reference's own render time: the raw curve's far end
+    reference_spp: int = 0  # 0: unknown
+    reference_seconds: float = math.nan  # the reference's own render time: the raw curve's far end
 
 
 @dataclass(frozen=True)
 class ImageRecord:
     """Scores and cost of one method on one test image."""
+
     scene_id: str
     spp: int
     method: str
@@ -62,10 +68,10 @@ class ImageRecord:
     psnr: float
     relmse: float
     hdr_flip: float
-    nonfinite: int            # NaN/inf values in the method's image, replaced by 0 before scoring
+    nonfinite: int  # NaN/inf values in the method's image, replaced by 0 before scoring
     render_seconds: float
     denoise_seconds: float
-    image: Path               # the scored image as a float32 EXR (plain R, G, B), under out_dir/images/
+    image: Path  # the scored image as a float32 EXR (plain R, G, B), under out_dir/images/
     reference_floor: float = math.nan  # the reference's own expected relMSE (metrics.reference_floor)
 
     @property
@@ -81,48 +87,51 @@ class ImageRecord:
 @dataclass(frozen=True)
 class TableRow:
     """One line of Table 1: a method at one spp, averaged over the test images of that spp."""
+
     spp: int
     method: str
     device: str
     n_images: int
-    average: dict[str, float]        # metric key -> mean over images
-    best_percent: dict[str, float]   # metric key -> B.P. in percent
-    denoise_seconds: float           # mean over images
-    total_seconds: float             # mean over images
-    nonfinite: int                   # summed over images
-    reference_floor: float = math.nan       # mean over images of the references' own expected relMSE
-    relmse_minus_floor: float = math.nan    # mean over images of relMSE - reference floor
+    average: dict[str, float]  # metric key -> mean over images
+    best_percent: dict[str, float]  # metric key -> B.P. in percent
+    denoise_seconds: float  # mean over images
+    total_seconds: float  # mean over images
+    nonfinite: int  # summed over images
+    reference_floor: float = math.nan  # mean over images of the references' own expected relMSE
+    relmse_minus_floor: float = math.nan  # mean over images of relMSE - reference floor
 
 
 @dataclass(frozen=True)
 class ScoredImage:
     """One test image (a scene at one spp) just scored: its float images, handed to evaluate()'s `on_image`
     while they are in memory, so a caller makes figures without reading files back."""
+
     scene_id: str
     spp: int
-    reference: np.ndarray               # (H, W, 3) float32 linear
-    noisy: np.ndarray                   # the path tracer's image (the denoisers' input colour)
-    outputs: dict[str, np.ndarray]      # denoiser name -> its image, in the order evaluated
-    records: dict[str, ImageRecord]     # PATH_TRACER and every denoiser name -> its scores
+    reference: np.ndarray  # (H, W, 3) float32 linear
+    noisy: np.ndarray  # the path tracer's image (the denoisers' input colour)
+    outputs: dict[str, np.ndarray]  # denoiser name -> its image, in the order evaluated
+    records: dict[str, ImageRecord]  # PATH_TRACER and every denoiser name -> its scores
 
 
 @dataclass
 class SceneImages:
     """Where a person finds one scene's linear images: float32 EXRs, each the image as it was scored."""
+
     scene_id: str
     reference: Path
-    inputs: dict[int, Path] = field(default_factory=dict)                 # spp -> noisy input
-    outputs: dict[int, dict[str, Path]] = field(default_factory=dict)     # spp -> method -> denoised
+    inputs: dict[int, Path] = field(default_factory=dict)  # spp -> noisy input
+    outputs: dict[int, dict[str, Path]] = field(default_factory=dict)  # spp -> method -> denoised
 
 
 @dataclass
 class EvalResult:
     table: list[TableRow]
-    records: list[ImageRecord]        # every denoiser on every image
-    path_tracer: list[ImageRecord]    # the noisy input of every image, costing its render time
+    records: list[ImageRecord]  # every denoiser on every image
+    path_tracer: list[ImageRecord]  # the noisy input of every image, costing its render time
     scenes: list[SceneImages]
-    devices: dict[str, str]           # method -> device
-    files: dict[str, Path]            # per_image_csv, results_json, table1_md, table1_csv, error_vs_time, equal_time
+    devices: dict[str, str]  # method -> device
+    files: dict[str, Path]  # per_image_csv, results_json, table1_md, table1_csv, error_vs_time, equal_time
     not_run: dict[str, str] = field(default_factory=dict)  # method -> why it is absent (e.g. no CUDA for OptiX)
     reference_cost: dict | None = None  # {"spp": [...], "seconds": mean over scenes} when every sidecar has it
     sources: dict[str, str] = field(default_factory=dict)  # method -> weights file, for learned denoisers
@@ -157,13 +166,21 @@ def aggregate(records: list[ImageRecord], devices: dict[str, str]) -> list[Table
             cell = by_cell.get((spp, method), [])
             if not cell:
                 continue
-            rows.append(TableRow(
-                spp, method, devices[method], len(cell),
-                {m.key: float(np.mean([getattr(r, m.key) for r in cell])) for m in METRICS},
-                {m.key: shares[m.key].get(method, 0.0) for m in METRICS},
-                float(np.mean([r.denoise_seconds for r in cell])), float(np.mean([r.total_seconds for r in cell])),
-                sum(r.nonfinite for r in cell), float(np.mean([r.reference_floor for r in cell])),
-                float(np.mean([r.relmse_minus_floor for r in cell]))))
+            rows.append(
+                TableRow(
+                    spp,
+                    method,
+                    devices[method],
+                    len(cell),
+                    {m.key: float(np.mean([getattr(r, m.key) for r in cell])) for m in METRICS},
+                    {m.key: shares[m.key].get(method, 0.0) for m in METRICS},
+                    float(np.mean([r.denoise_seconds for r in cell])),
+                    float(np.mean([r.total_seconds for r in cell])),
+                    sum(r.nonfinite for r in cell),
+                    float(np.mean([r.reference_floor for r in cell])),
+                    float(np.mean([r.relmse_minus_floor for r in cell])),
+                )
+            )
     return rows
 
 
@@ -172,8 +189,10 @@ def mean_curve(records: list[ImageRecord]) -> dict[int, tuple[float, float]]:
     by_spp: dict[int, list[ImageRecord]] = defaultdict(list)
     for r in records:
         by_spp[r.spp].append(r)
-    return {spp: (float(np.mean([r.total_seconds for r in rs])), float(np.mean([r.relmse for r in rs])))
-            for spp, rs in sorted(by_spp.items())}
+    return {
+        spp: (float(np.mean([r.total_seconds for r in rs])), float(np.mean([r.relmse for r in rs])))
+        for spp, rs in sorted(by_spp.items())
+    }
 
 
 def denoising_methods(result: EvalResult) -> list[str]:

@@ -12,6 +12,7 @@ line of per_image.csv can be looked at or re-scored. The caller's `on_image` get
 float images while they are in memory (the eval stage makes the HTML page's figures from them); at most
 one scene's images are held at a time, never the test set's. The tables are written by outputs.py.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,8 +29,16 @@ from admc.common.metrics import count_nonfinite, score
 from admc.pipeline.evaluation.baselines import Denoiser, noisy_color, time_denoiser
 from admc.pipeline.evaluation.inputs import by_scene, read_reference
 from admc.pipeline.evaluation.outputs import write_outputs
-from admc.pipeline.evaluation.records import (PATH_TRACER, EvalError, EvalResult, ImageRecord, SceneImages,
-                                              ScoredImage, TestImage, aggregate)
+from admc.pipeline.evaluation.records import (
+    PATH_TRACER,
+    EvalError,
+    EvalResult,
+    ImageRecord,
+    SceneImages,
+    ScoredImage,
+    TestImage,
+    aggregate,
+)
 from admc.stores.exr import read_exr, write_exr
 
 RESERVED_NAMES = frozenset({PATH_TRACER, "input", "reference"})
@@ -42,8 +51,10 @@ def _check_denoisers(denoisers: list[Denoiser]) -> None:
     names = [d.name for d in denoisers]
     for name in names:
         if name in RESERVED_NAMES or not NAME_PATTERN.fullmatch(name):
-            raise EvalError(f"denoiser name {name!r} is reserved or not a plain file name "
-                            f"(letters, digits, . _ + -; not {', '.join(sorted(RESERVED_NAMES))})")
+            raise EvalError(
+                f"denoiser name {name!r} is reserved or not a plain file name "
+                f"(letters, digits, . _ + -; not {', '.join(sorted(RESERVED_NAMES))})"
+            )
     if len(set(names)) != len(names):
         raise EvalError(f"denoiser names must be unique, got {names}")
 
@@ -61,6 +72,7 @@ class _Timing:
     and sizes), not once per image. What a warm-up removes (JIT, oneDNN's primitives for a shape, the
     allocator's growth, OptiX's per-size denoiser) is paid once per layout; a warm-up run per image
     would double the evaluation's denoising time at the default single timed run."""
+
     repeats: int
     warmup: int
     warmed: set[tuple] = field(default_factory=set)
@@ -72,9 +84,16 @@ class _Timing:
         return time_denoiser(denoiser, layers, repeats=self.repeats, warmup=warmup)
 
 
-def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, progress: bool = True,
-             repeats: int = 1, warmup: int = 1, not_run: dict[str, str] | None = None,
-             on_image: Callable[[ScoredImage], None] | None = None) -> EvalResult:
+def evaluate(
+    images: list[TestImage],
+    denoisers: list[Denoiser],
+    out_dir: Path,
+    progress: bool = True,
+    repeats: int = 1,
+    warmup: int = 1,
+    not_run: dict[str, str] | None = None,
+    on_image: Callable[[ScoredImage], None] | None = None,
+) -> EvalResult:
     """Score every denoiser (and the raw path tracer) on every image; write the tables, plot and EXRs.
 
     `on_image` gets each test image's ScoredImage as soon as it is scored (the float images are
@@ -98,14 +117,16 @@ def evaluate(images: list[TestImage], denoisers: list[Denoiser], out_dir: Path, 
     devices = {d.name: d.device for d in denoisers}
     table = aggregate(records, devices)
     sources = {d.name: d.source for d in denoisers if getattr(d, "source", None)}
-    result = EvalResult(table, records, path_tracer, scenes, devices, {}, dict(not_run or {}),
-                        _reference_cost(images), sources)
+    result = EvalResult(
+        table, records, path_tracer, scenes, devices, {}, dict(not_run or {}), _reference_cost(images), sources
+    )
     result.files = write_outputs(result, out_dir, repeats, warmup)
     return result
 
 
-def _scene(group: list[TestImage], scene: SceneImages, denoisers: list[Denoiser], bar: tuple[Progress, TaskID],
-           timing: _Timing) -> Iterator[ScoredImage]:
+def _scene(
+    group: list[TestImage], scene: SceneImages, denoisers: list[Denoiser], bar: tuple[Progress, TaskID], timing: _Timing
+) -> Iterator[ScoredImage]:
     """One scene's test images by spp, each scored and written; the scene's paths go into `scene`. A
     generator, so only this scene's images are alive, one test image (and the reference) at a time."""
     reference, floor = read_reference(group[0].reference_path)
@@ -117,30 +138,59 @@ def _scene(group: list[TestImage], scene: SceneImages, denoisers: list[Denoiser]
         yield scored
 
 
-def _score(test: TestImage, reference: np.ndarray, floor: float, denoisers: list[Denoiser], folder: Path,
-           bar: tuple[Progress, TaskID], timing: _Timing) -> ScoredImage:
+def _score(
+    test: TestImage,
+    reference: np.ndarray,
+    floor: float,
+    denoisers: list[Denoiser],
+    folder: Path,
+    bar: tuple[Progress, TaskID],
+    timing: _Timing,
+) -> ScoredImage:
     """One test image: the noisy input and every denoiser's output, each written to `folder` and scored."""
     layers = read_exr(test.noisy_path)
     noisy = noisy_color(layers)
     if noisy.shape != reference.shape:
-        raise EvalError(f"{test.noisy_path}: image is {noisy.shape[:2]}, its reference "
-                        f"{test.reference_path} is {reference.shape[:2]}")
+        raise EvalError(
+            f"{test.noisy_path}: image is {noisy.shape[:2]}, its reference "
+            f"{test.reference_path} is {reference.shape[:2]}"
+        )
     stem = f"spp{test.spp:04d}"
-    records = {PATH_TRACER: _record(test, PATH_TRACER, "render (see sidecars)", noisy, reference, 0.0,
-                                    _write(folder / f"{stem}_input.exr", noisy), floor)}
+    records = {
+        PATH_TRACER: _record(
+            test,
+            PATH_TRACER,
+            "render (see sidecars)",
+            noisy,
+            reference,
+            0.0,
+            _write(folder / f"{stem}_input.exr", noisy),
+            floor,
+        )
+    }
     outputs = {}
     progress, task = bar
     for denoiser in denoisers:
         progress.update(task, description=f"{denoiser.name} on {test.scene_id} @ {test.spp} spp")
         missing = getattr(denoiser, "missing_layers", lambda _: [])(layers)  # model.noise_input weights
         if missing:
-            raise EvalError(f"{test.noisy_path}: lacks layer(s) {', '.join(missing)}, which {denoiser.name}'s "
-                            f"weights {getattr(denoiser, 'source', None)} read (model.noise_input: the variance of "
-                            "each pixel's mean, as `admc-pipe render` writes)")
+            raise EvalError(
+                f"{test.noisy_path}: lacks layer(s) {', '.join(missing)}, which {denoiser.name}'s "
+                f"weights {getattr(denoiser, 'source', None)} read (model.noise_input: the variance of "
+                "each pixel's mean, as `admc-pipe render` writes)"
+            )
         image, seconds = timing.run(denoiser, layers)
         outputs[denoiser.name] = image
-        records[denoiser.name] = _record(test, denoiser.name, denoiser.device, image, reference, seconds,
-                                         _write(folder / f"{stem}_{denoiser.name}.exr", image), floor)
+        records[denoiser.name] = _record(
+            test,
+            denoiser.name,
+            denoiser.device,
+            image,
+            reference,
+            seconds,
+            _write(folder / f"{stem}_{denoiser.name}.exr", image),
+            floor,
+        )
         progress.advance(task)
     return ScoredImage(test.scene_id, test.spp, reference, noisy, outputs, records)
 
@@ -150,23 +200,47 @@ def _reference_cost(images: list[TestImage]) -> dict | None:
     per_scene = {t.scene_id: t for t in images}
     if not per_scene or any(not math.isfinite(t.reference_seconds) for t in per_scene.values()):
         return None
-    return {"spp": sorted({t.reference_spp for t in per_scene.values()}),
-            "seconds": float(np.mean([t.reference_seconds for t in per_scene.values()]))}
+    return {
+        "spp": sorted({t.reference_spp for t in per_scene.values()}),
+        "seconds": float(np.mean([t.reference_seconds for t in per_scene.values()])),
+    }
 
 
-def _record(test: TestImage, method: str, device: str, image: np.ndarray, reference: np.ndarray,
-            seconds: float, saved: Path, floor: float) -> ImageRecord:
-    return ImageRecord(test.scene_id, test.spp, method, device, **score(image, reference),
-                       nonfinite=count_nonfinite(image), render_seconds=test.render_seconds,
-                       denoise_seconds=seconds, image=saved, reference_floor=floor)
+def _record(
+    test: TestImage,
+    method: str,
+    device: str,
+    image: np.ndarray,
+    reference: np.ndarray,
+    seconds: float,
+    saved: Path,
+    floor: float,
+) -> ImageRecord:
+    return ImageRecord(
+        test.scene_id,
+        test.spp,
+        method,
+        device,
+        **score(image, reference),
+        nonfinite=count_nonfinite(image),
+        render_seconds=test.render_seconds,
+        denoise_seconds=seconds,
+        image=saved,
+        reference_floor=floor,
+    )
 
 
 class _ProgressBar:
     """A rich progress bar on stderr, or nothing."""
 
     def __init__(self, total: int, enabled: bool) -> None:
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), disable=not enabled)
+        self.progress = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            disable=not enabled,
+        )
         self.task = self.progress.add_task("evaluating", total=total)
 
     def __enter__(self) -> tuple[Progress, TaskID]:

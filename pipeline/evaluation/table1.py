@@ -3,14 +3,21 @@
 Built once from an EvalResult; the Markdown file (`markdown`) and the HTML page both render this
 object, so they show the same cells and neither reads the other back.
 """
+
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
 
 from admc.common.metrics import METRICS, NONFINITE_RULE
-from admc.pipeline.evaluation.records import (BEST_PERCENT_RULE, FLOOR_COLUMN, FLOOR_ROW, FLOOR_RULE, EvalResult,
-                                              TableRow)
+from admc.pipeline.evaluation.records import (
+    BEST_PERCENT_RULE,
+    FLOOR_COLUMN,
+    FLOOR_ROW,
+    FLOOR_RULE,
+    EvalResult,
+    TableRow,
+)
 
 TITLE = "Table 1: aggregate results over the test images"
 NOT_APPLICABLE = "–"
@@ -25,6 +32,7 @@ class Cell:
 @dataclass(frozen=True)
 class Note:
     """A paragraph under the table: a bold label (may be empty) and its text."""
+
     label: str
     text: str
 
@@ -46,8 +54,11 @@ class Table1:
 
 def build_table1(result: EvalResult) -> Table1:
     """Table 1 of an evaluation: per spp, one line per method and the references' floor."""
-    head = ["spp", "Denoiser"] + [f"{m.label} {'↓' if m.lower_is_better else '↑'} {part}"
-                                  for m in METRICS for part in ("Avg.", "B.P.")] + [f"{FLOOR_COLUMN} ↓ Avg."]
+    head = (
+        ["spp", "Denoiser"]
+        + [f"{m.label} {'↓' if m.lower_is_better else '↑'} {part}" for m in METRICS for part in ("Avg.", "B.P.")]
+        + [f"{FLOOR_COLUMN} ↓ Avg."]
+    )
     rows = []
     for spp in sorted({row.spp for row in result.table}):
         rows += _spp_rows(spp, [row for row in result.table if row.spp == spp])
@@ -68,18 +79,21 @@ def _spp_rows(spp: int, rows: list[TableRow]) -> list[list[Cell]]:
         cells.append(Cell(f"{row.relmse_minus_floor:.4f}", row.relmse_minus_floor == unbiased))
         lines.append(cells)
     floor = f"{rows[0].reference_floor:.4f}"  # every method at one spp is scored against the same references
-    texts = ["", FLOOR_ROW] + [t for m in METRICS
-                               for t in ((floor, NOT_APPLICABLE) if m.key == "relmse" else (NOT_APPLICABLE,) * 2)]
+    texts = ["", FLOOR_ROW] + [
+        t for m in METRICS for t in ((floor, NOT_APPLICABLE) if m.key == "relmse" else (NOT_APPLICABLE,) * 2)
+    ]
     lines.append([Cell(t) for t in texts + [NOT_APPLICABLE]])
     return lines
 
 
 def _notes(result: EvalResult) -> list[Note]:
     counts = ", ".join(f"{spp} spp: {n}" for spp, n in sorted({(row.spp, row.n_images) for row in result.table}))
-    notes = [Note("", f"Images per spp: {counts}. Best average and highest B.P. in bold."),
-             Note("B.P.", BEST_PERCENT_RULE + " Shown rounded to 2 decimals."),
-             Note(FLOOR_ROW, FLOOR_RULE),
-             Note("Devices:", "; ".join(f"{name}: {dev}" for name, dev in result.devices.items()))]
+    notes = [
+        Note("", f"Images per spp: {counts}. Best average and highest B.P. in bold."),
+        Note("B.P.", BEST_PERCENT_RULE + " Shown rounded to 2 decimals."),
+        Note(FLOOR_ROW, FLOOR_RULE),
+        Note("Devices:", "; ".join(f"{name}: {dev}" for name, dev in result.devices.items())),
+    ]
     if result.sources:
         notes.append(Note("Weights:", "; ".join(f"{name}: {path}" for name, path in result.sources.items())))
     if result.not_run:

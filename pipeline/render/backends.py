@@ -2,6 +2,7 @@
 `tasks.py`, Blender `.blend` scenes through `blender/cycles_tasks.py`. The stages import this module; each renderer's
 tasks keep their own code version, so adding Cycles re-rendered no Mitsuba scene.
 """
+
 from __future__ import annotations
 
 from admc.pipeline.config import Config
@@ -22,8 +23,9 @@ def corpus(cfg: Config, left_out: list[SceneError] | None = None) -> list:
     specs = mitsuba.corpus(cfg, left_out)
     if cfg.corpus.blend_dirs:
         own = cfg.corpus.xml_resolution == "film"
-        specs += cycles.blend_corpus(list(cfg.corpus.blend_dirs), None if own else cfg.render.resolution,
-                                     cfg.render.blender)
+        specs += cycles.blend_corpus(
+            list(cfg.corpus.blend_dirs), None if own else cfg.render.resolution, cfg.render.blender
+        )
     return specs
 
 

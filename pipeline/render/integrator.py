@@ -35,6 +35,7 @@ relMSE at 64 spp on experiments/delta_paths_check.py's mirror spheres).
 The sampling loop is a Dr.Jit symbolic loop (`@dr.syntax`): in JIT variants the whole wavefront
 compiles into one kernel, which is what makes a Python integrator as fast as the C++ `path`.
 """
+
 from __future__ import annotations
 
 import functools
@@ -75,6 +76,7 @@ def _integrator_class(variant: str) -> type:
     """Build the integrator class for the active variant (mi.SamplingIntegrator is per variant).
 
     Long on purpose: the class must be defined after the variant is set, so its methods live in here."""
+
     class AdmcSplitIntegrator(mi.SamplingIntegrator):
         """Path tracer with KPCN diffuse/specular split, features and second moments as AOVs."""
 
@@ -94,8 +96,7 @@ def _integrator_class(variant: str) -> type:
             return _aov_channel_names(self.split)
 
         def to_string(self) -> str:
-            return (f"AdmcSplitIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                    f"split={self.split}]")
+            return f"AdmcSplitIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, split={self.split}]"
 
         @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -119,12 +120,12 @@ def _integrator_class(variant: str) -> type:
 
             l_diffuse = mi.Spectrum(0.0)
             l_specular = mi.Spectrum(0.0)
-            found = mi.Bool(False)       # first non-delta vertex reached (and processed)
+            found = mi.Bool(False)  # first non-delta vertex reached (and processed)
             to_specular = mi.Bool(False)  # lobe sampled there was not diffuse
             albedo = mi.Spectrum(0.0)
             normal = mi.Vector3f(0.0)
             distance = mi.Float(0.0)
-            delta_seen = mi.Bool(False)    # the chain met a mirror or smooth glass
+            delta_seen = mi.Bool(False)  # the chain met a mirror or smooth glass
             delta_escape = mi.Bool(False)  # ... and then escaped to the environment
 
             while dr.hint(active, label=INTEGRATOR_NAME):
@@ -167,8 +168,7 @@ def _integrator_class(variant: str) -> type:
                 nee = bsdf_val * em_weight * mis_em
                 if dr.hint(split, mode="scalar"):
                     diffuse_val = bsdf.eval(diffuse_ctx, si, wo, active_em & first)
-                    nee_diffuse = dr.select(first, diffuse_val * em_weight * mis_em,
-                                            dr.select(into_specular, 0.0, nee))
+                    nee_diffuse = dr.select(first, diffuse_val * em_weight * mis_em, dr.select(into_specular, 0.0, nee))
                     l_diffuse[active_em] = dr.fma(throughput, nee_diffuse, l_diffuse)
                     l_specular[active_em] = dr.fma(throughput, nee - nee_diffuse, l_specular)
                 else:
@@ -176,7 +176,9 @@ def _integrator_class(variant: str) -> type:
 
                 # ---- Features at the first non-delta vertex
                 has_diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.DiffuseReflection)
-                reflectance = dr.select(has_diffuse, bsdf.eval_diffuse_reflectance(si, first & has_diffuse), bsdf_weight)
+                reflectance = dr.select(
+                    has_diffuse, bsdf.eval_diffuse_reflectance(si, first & has_diffuse), bsdf_weight
+                )
                 albedo[first] = throughput * dr.select(on_emitter, 1.0, reflectance)
                 normal[first] = si.sh_frame.n
                 to_specular[first] = ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Diffuse)
@@ -221,8 +223,11 @@ channel of every radiance buffer (float32 accumulation leaves about 2e-4 on iden
 
 def _samples_disagree(buffers: dict[str, np.ndarray], spp: int) -> np.ndarray:
     """(H, W, 1): the pixel's samples differ beyond float rounding in some radiance channel."""
-    spread = [buffers[f"{name}_var"] * spp > np.square(SAMPLES_AGREE_RTOL * buffers[name])
-              for name in BRANCHES if name in buffers]
+    spread = [
+        buffers[f"{name}_var"] * spp > np.square(SAMPLES_AGREE_RTOL * buffers[name])
+        for name in BRANCHES
+        if name in buffers
+    ]
     return np.any(np.concatenate(spread, axis=-1), axis=-1, keepdims=True)
 
 
@@ -239,8 +244,9 @@ def register() -> None:
     if variant is None:
         raise RuntimeError("register(): no Mitsuba variant is active; call use_variant() first")
     if not (variant.endswith("_rgb") and variant.split("_")[0] in ("llvm", "cuda")):
-        raise RuntimeError(f"{INTEGRATOR_NAME} needs a JIT RGB variant (llvm_ad_rgb, cuda_ad_rgb), "
-                           f"the active one is {variant!r}")
+        raise RuntimeError(
+            f"{INTEGRATOR_NAME} needs a JIT RGB variant (llvm_ad_rgb, cuda_ad_rgb), the active one is {variant!r}"
+        )
     if variant in _registered_variants:
         return
     cls = _integrator_class(variant)
@@ -260,8 +266,9 @@ def _split_passes(spp: int, max_spp_per_pass: int) -> list[int]:
     return [base + (1 if i < extra else 0) for i in range(n_passes)]
 
 
-def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True, max_depth: int = 8,
-                   max_spp_per_pass: int = 256) -> dict[str, np.ndarray]:
+def render_buffers(
+    scene: "mi.Scene", spp: int, seed: int, *, split: bool = True, max_depth: int = 8, max_spp_per_pass: int = 256
+) -> dict[str, np.ndarray]:
     """Render all denoiser buffers of `scene` at `spp` samples per pixel, as float32 (H, W, C) arrays.
 
     Large spp are rendered in passes of at most `max_spp_per_pass` (memory is per pass), each with
@@ -275,8 +282,10 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         raise ValueError(f"render_buffers: seed must be >= 0, got {seed}")
     rfilter = scene.sensors()[0].film().rfilter().class_name()
     if rfilter != "BoxFilter":
-        raise ValueError(f"render_buffers: the scene's film uses a {rfilter}; per-pixel means and variances "
-                         "need a box reconstruction filter ('rfilter': {'type': 'box'})")
+        raise ValueError(
+            f"render_buffers: the scene's film uses a {rfilter}; per-pixel means and variances "
+            "need a box reconstruction filter ('rfilter': {'type': 'box'})"
+        )
     register()
     integrator = mi.load_dict({"type": INTEGRATOR_NAME, "split": split, "max_depth": max_depth})
     layout = aov_layout(split)
@@ -288,13 +297,13 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         image = np.asarray(mi.render(scene, integrator=integrator, spp=pass_spp, seed=pass_seed), dtype=np.float64)
         if image.ndim != 3 or image.shape[2] < n_aov:
             raise RuntimeError(f"render_buffers: film returned shape {image.shape}, expected >= {n_aov} AOV channels")
-        weighted = image[:, :, image.shape[2] - n_aov:] * pass_spp
+        weighted = image[:, :, image.shape[2] - n_aov :] * pass_spp
         total = weighted if total is None else total + weighted
     mean = total / spp
 
     planes, offset = {}, 0
     for name, channels in layout:
-        planes[name] = mean[:, :, offset:offset + len(channels)]
+        planes[name] = mean[:, :, offset : offset + len(channels)]
         offset += len(channels)
 
     out = {}
@@ -304,10 +313,12 @@ def render_buffers(scene: "mi.Scene", spp: int, seed: int, *, split: bool = True
         out[f"{name}_var"] = np.maximum(planes[f"{name}_m2"] - np.square(m1), 0.0) / spp
     via_delta = (planes["coverage"] == 0) & (planes["delta_coverage"] > 0) & _samples_disagree(out, spp)
     coverage = np.where(via_delta, planes["delta_coverage"], planes["coverage"])
-    out.update({
-        "albedo": planes["albedo"],
-        "normal": planes["normal"],
-        "depth": np.where(coverage > 0, planes["depth"] / np.where(coverage > 0, coverage, 1.0), 0.0),
-        "coverage": coverage,
-    })
+    out.update(
+        {
+            "albedo": planes["albedo"],
+            "normal": planes["normal"],
+            "depth": np.where(coverage > 0, planes["depth"] / np.where(coverage > 0, coverage, 1.0), 0.0),
+            "coverage": coverage,
+        }
+    )
     return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}

@@ -5,6 +5,7 @@ float32. Each (scene, spp) gets its own seed derived from the base seed, so the 
 and the reference is independent. The scene is analysed first: a scene with no glossy, conductor or
 dielectric BSDF renders no specular buffer at all.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -60,8 +61,18 @@ def view_space_normals(normal: np.ndarray, scene) -> np.ndarray:
     return (camera * np.array([-1.0, 1.0, -1.0])).astype(np.float32)
 
 
-def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int, reference: bool,
-               variant: str, max_depth: int, max_spp_per_pass: int) -> dict:
+def render_one(
+    out_dir: Path,
+    inputs: dict,
+    *,
+    scene: dict,
+    spp: int,
+    seed: int,
+    reference: bool,
+    variant: str,
+    max_depth: int,
+    max_spp_per_pass: int,
+) -> dict:
     """Task body: render one (scene, spp) into out_dir/render.exr + render.json."""
     spec = SceneSpec(**{**scene, "resolution": tuple(scene["resolution"])})
     active = use_variant(variant)
@@ -74,24 +85,39 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
     integrator.render_buffers(loaded, 1, seed ^ 0x2545F491, split=needs.has_specular, max_depth=max_depth)
     compile_seconds = time.perf_counter() - start
     start = time.perf_counter()
-    layers = integrator.render_buffers(loaded, spp, seed, split=needs.has_specular, max_depth=max_depth,
-                                       max_spp_per_pass=max_spp_per_pass)
+    layers = integrator.render_buffers(
+        loaded, spp, seed, split=needs.has_specular, max_depth=max_depth, max_spp_per_pass=max_spp_per_pass
+    )
     seconds = time.perf_counter() - start
     layers["normal"] = view_space_normals(layers["normal"], loaded)
     nonfinite = exr.nonfinite_report(layers)
     clamped = 0
     if not reference:
         layers, clamped = _half_safe(layers)
-    exr.write_exr(out_dir / EXR_NAME, layers, precision="float" if reference else "half",
-                  attributes={"admc_scene": spec.scene_id, "admc_spp": str(spp)})
+    exr.write_exr(
+        out_dir / EXR_NAME,
+        layers,
+        precision="float" if reference else "half",
+        attributes={"admc_scene": spec.scene_id, "admc_spp": str(spp)},
+    )
     sidecar = {
-        "scene_id": spec.scene_id, "family": spec.family, "scene_hash": scenes.scene_hash(spec),
-        "spp": spp, "reference": reference, "seed": seed, "variant": active,
-        "resolution": list(spec.resolution), "render_seconds": round(seconds, 4),
+        "scene_id": spec.scene_id,
+        "family": spec.family,
+        "scene_hash": scenes.scene_hash(spec),
+        "spp": spp,
+        "reference": reference,
+        "seed": seed,
+        "variant": active,
+        "resolution": list(spec.resolution),
+        "render_seconds": round(seconds, 4),
         "warmup_seconds": round(compile_seconds, 4),
         "samples_per_second": spp * spec.resolution[0] * spec.resolution[1] / max(seconds, 1e-9),
-        "constructs": list(spec.constructs), "has_specular": needs.has_specular, "bsdf_types": list(needs.bsdf_types),
-        "layers": sorted(layers), "nonfinite": nonfinite, "fp16_clamped": clamped,
+        "constructs": list(spec.constructs),
+        "has_specular": needs.has_specular,
+        "bsdf_types": list(needs.bsdf_types),
+        "layers": sorted(layers),
+        "nonfinite": nonfinite,
+        "fp16_clamped": clamped,
     }
     (out_dir / SIDECAR_NAME).write_text(json.dumps(sidecar, indent=2))
     return sidecar
@@ -99,8 +125,14 @@ def render_one(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int,
 
 def corpus(cfg: Config, left_out: list[scenes.SceneError] | None = None) -> list[SceneSpec]:
     """Procedural scenes, then the user's XML scenes (a broken one raises, or goes to `left_out`: see xml_corpus)."""
-    specs = scenes.procedural_corpus(list(cfg.corpus.families), cfg.corpus.n_scenes, cfg.corpus.seed,
-                                     cfg.render.resolution, cfg.corpus.constructs, cfg.corpus.construct_chance)
+    specs = scenes.procedural_corpus(
+        list(cfg.corpus.families),
+        cfg.corpus.n_scenes,
+        cfg.corpus.seed,
+        cfg.render.resolution,
+        cfg.corpus.constructs,
+        cfg.corpus.construct_chance,
+    )
     if cfg.corpus.xml_dirs:
         own_film = cfg.corpus.xml_resolution == "film"
         specs += scenes.xml_corpus(list(cfg.corpus.xml_dirs), None if own_film else cfg.render.resolution, left_out)
@@ -111,8 +143,9 @@ def ood_corpus(cfg: Config) -> list[SceneSpec]:
     """The out-of-family set: `eval.ood_scenes_per_family` scenes of each of `eval.ood_families` (held out
     of training), drawn with `eval.ood_seed`, plain (no training constructs mixed in)."""
     families = list(cfg.eval.ood_families)
-    return scenes.procedural_corpus(families, cfg.eval.ood_scenes_per_family * len(families), cfg.eval.ood_seed,
-                                    cfg.render.resolution)
+    return scenes.procedural_corpus(
+        families, cfg.eval.ood_scenes_per_family * len(families), cfg.eval.ood_seed, cfg.render.resolution
+    )
 
 
 def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Task]]:
@@ -126,14 +159,24 @@ def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Tas
         tasks[spec.scene_id] = {}
         for name, spp, reference in levels:
             params = {
-                "scene": dataclasses.asdict(spec), "scene_hash": content, "spp": spp, "reference": reference,
+                "scene": dataclasses.asdict(spec),
+                "scene_hash": content,
+                "spp": spp,
+                "reference": reference,
                 "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
-                "variant": variant, "max_depth": cfg.render.max_depth,
+                "variant": variant,
+                "max_depth": cfg.render.max_depth,
                 "max_spp_per_pass": cfg.render.max_spp_per_pass,
             }
             label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp"
-            tasks[spec.scene_id][name] = Task(stage="render", label=label, fn=_render_task, params=params,
-                                              code_version=RENDER_CODE, source=scene_source(spec))
+            tasks[spec.scene_id][name] = Task(
+                stage="render",
+                label=label,
+                fn=_render_task,
+                params=params,
+                code_version=RENDER_CODE,
+                source=scene_source(spec),
+            )
     return tasks
 
 

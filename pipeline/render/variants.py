@@ -5,6 +5,7 @@ sample (~120x slower), so it accepts only the JIT RGB variants, and `auto` picks
 LLVM back end needs libLLVM >= 16 here (the system's libLLVM-15 crashes Mitsuba): unless
 DRJIT_LIBLLVM_PATH names one, the newest libLLVM >= 16 in the usual Debian/Ubuntu places is used.
 """
+
 from __future__ import annotations
 
 import glob
@@ -16,8 +17,12 @@ from admc.errors import AdmcError
 
 PREFERENCE = ("cuda_ad_rgb", "llvm_ad_rgb")
 MIN_LLVM = 16
-LLVM_PATTERNS = ("/usr/lib/{multiarch}/libLLVM*.so*", "/usr/lib/llvm-*/lib/libLLVM*.so*", "/usr/lib64/libLLVM*.so*",
-                 "/usr/local/lib/libLLVM*.so*")
+LLVM_PATTERNS = (
+    "/usr/lib/{multiarch}/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/usr/lib64/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+)
 
 
 class VariantError(AdmcError, RuntimeError):
@@ -61,17 +66,23 @@ def available_variants() -> list[str]:
 def resolve_variant(requested: str = "auto") -> str:
     """Map 'auto' to the best usable variant; check an explicit one is one the integrator accepts and works."""
     if requested != "auto" and requested not in PREFERENCE:
-        raise VariantError(f"render.variant {requested!r}: the split integrator runs only in {', '.join(PREFERENCE)} "
-                           "(a Python integrator needs a JIT variant; its buffers are RGB)")
+        raise VariantError(
+            f"render.variant {requested!r}: the split integrator runs only in {', '.join(PREFERENCE)} "
+            "(a Python integrator needs a JIT variant; its buffers are RGB)"
+        )
     usable = available_variants()
     if not usable:
-        raise VariantError("render.variant: neither CUDA nor LLVM works on this machine, and the split integrator "
-                           f"needs one; install libLLVM >= {MIN_LLVM} (Debian: apt-get install libllvm19) or set "
-                           "DRJIT_LIBLLVM_PATH to one")
+        raise VariantError(
+            "render.variant: neither CUDA nor LLVM works on this machine, and the split integrator "
+            f"needs one; install libLLVM >= {MIN_LLVM} (Debian: apt-get install libllvm19) or set "
+            "DRJIT_LIBLLVM_PATH to one"
+        )
     if requested == "auto":
         return usable[0]
     if requested not in usable:
-        raise VariantError(f"render.variant {requested!r} needs a back end this machine lacks; usable: {', '.join(usable)}")
+        raise VariantError(
+            f"render.variant {requested!r} needs a back end this machine lacks; usable: {', '.join(usable)}"
+        )
     return requested
 
 

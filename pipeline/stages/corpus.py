@@ -1,5 +1,6 @@
 """What the render and dataset stages share: the task cache of a config, and one run of the corpus's
 tasks that links the finished renders and then reports every failure together."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -32,20 +33,22 @@ def open_cache(cfg: Config) -> TaskCache:
 @dataclass
 class StageResult:
     scenes: list[SceneSpec]
-    sidecars: list[dict]           # one per render, in corpus order
-    tiles: list[dict]              # one per scene (empty for render-only runs)
+    sidecars: list[dict]  # one per render, in corpus order
+    tiles: list[dict]  # one per scene (empty for render-only runs)
     renders_dir: Path
     store: Path | None
     executed: int
     cached: int
-    tasks: list[Task]              # every task of the run, upstream included (for their manifests)
+    tasks: list[Task]  # every task of the run, upstream included (for their manifests)
     retiled: list[str] = field(default_factory=list)  # damaged scenes tiled again ("split/scene (arrays)")
     skipped: list[str] = field(default_factory=list)  # files in the scene folders that are no scene, and why
 
     @property
     def notes(self) -> list[str]:
         """What the user should hear about besides the counts."""
-        retiled = [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
+        retiled = (
+            [f"re-tiled damaged scenes from their cached renders: {', '.join(self.retiled)}"] if self.retiled else []
+        )
         return self.skipped + retiled
 
 
@@ -55,18 +58,17 @@ def run_cached(cfg: Config, tasks: list[Task], progress: bool) -> tuple[dict[str
     cached = sum(store.is_done(t) for t in runner.collect(tasks).values())
     logs = cfg.workdir_path("slurm-logs").resolve()  # the jobs' logs, on the shared file system
     with slurm.scheduler_address(cfg.run.scheduler, cfg.cluster, logs) as scheduler:
-        published = runner.run(tasks, store, scheduler=scheduler, workers=cfg.run.workers or None,
-                               progress=progress)
+        published = runner.run(tasks, store, scheduler=scheduler, workers=cfg.run.workers or None, progress=progress)
     return published, cached
 
 
 def read_sidecars(renders: dict[str, dict[str, Task]], published: dict[str, Path]) -> list[dict]:
-    return [read_json(published[t.key] / render.SIDECAR_NAME)
-            for levels in renders.values() for t in levels.values()]
+    return [read_json(published[t.key] / render.SIDECAR_NAME) for levels in renders.values() for t in levels.values()]
 
 
-def run_corpus(cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Task]], left_out: list[SceneError],
-                progress: bool) -> tuple[dict[str, Path], int, Path]:
+def run_corpus(
+    cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Task]], left_out: list[SceneError], progress: bool
+) -> tuple[dict[str, Path], int, Path]:
     """Run the corpus's tasks and link every fully rendered scene under workdir/renders; then fail
     naming each failed task and each scene file left out, so the good scenes' work is done first."""
     cache = open_cache(cfg)
@@ -83,8 +85,10 @@ def run_corpus(cfg: Config, tasks: list[Task], renders: dict[str, dict[str, Task
         return published, cached, renders_dir
     report = [str(failure)] if failure is not None else []
     if broken:
-        report += [f"{len(broken)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
-                   *(f"  {error}" for error in broken)]
+        report += [
+            f"{len(broken)} scene file(s) left out of the corpus (fix and rerun: only what is missing runs):",
+            *(f"  {error}" for error in broken),
+        ]
     report += [str(error) for error in left_out if isinstance(error, NotAScene)]
     raise StageError("\n".join(report)) from failure
 

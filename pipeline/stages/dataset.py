@@ -1,4 +1,5 @@
 """`admc-pipe dataset`: the corpus rendered and tiled into the patch store, as one task graph."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -26,11 +27,18 @@ def store_attributes(cfg: Config) -> dict:
     return {
         "transform": transforms.transform_spec(),
         "patch_size": cfg.tile.patch_size,
-        "render": {"spp": list(cfg.render.spp), "reference_spp": cfg.render.reference_spp,
-                   "max_depth": cfg.render.max_depth},
-        "tile": {"crops_per_scene": cfg.tile.crops_per_scene, "candidates_per_crop": cfg.tile.candidates_per_crop,
-                 "split": list(cfg.tile.split), "seed": cfg.tile.seed,
-                 **({"clean_targets": True} if cfg.tile.clean_targets else {})},
+        "render": {
+            "spp": list(cfg.render.spp),
+            "reference_spp": cfg.render.reference_spp,
+            "max_depth": cfg.render.max_depth,
+        },
+        "tile": {
+            "crops_per_scene": cfg.tile.crops_per_scene,
+            "candidates_per_crop": cfg.tile.candidates_per_crop,
+            "split": list(cfg.tile.split),
+            "seed": cfg.tile.seed,
+            **({"clean_targets": True} if cfg.tile.clean_targets else {}),
+        },
         "feature_channels": list(transforms.FEATURE_CHANNELS),
         "admc_version": admc.__version__,
     }
@@ -40,8 +48,10 @@ def dataset_splits(cfg: Config, left_out: list[SceneError] | None = None) -> dic
     """{scene id: (spec, split)} of what the patch store holds: the corpus split by tile.split, except
     that with tile.val_set = "ood" the val split is the out-of-family set (checkpoints are then selected
     on scenes unlike the training ones) and the corpus's own val scenes are left out."""
-    chosen = {spec.scene_id: (spec, tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed))
-              for spec in render.corpus(cfg, left_out)}
+    chosen = {
+        spec.scene_id: (spec, tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed))
+        for spec in render.corpus(cfg, left_out)
+    }
     if cfg.tile.val_set == "ood":
         chosen = {key: value for key, value in chosen.items() if value[1] != "val"}
         chosen.update({spec.scene_id: (spec, "val") for spec in render.ood_corpus(cfg)})
@@ -53,8 +63,10 @@ def _check_val_set(store: Path, val_ids: set[str], cfg: Config) -> None:
     corpus and out-of-family scenes would select on neither."""
     strays = sorted(set(patches.list_scenes(store, "val")) - val_ids)
     if strays:
-        raise StageError(f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
-                         f"tile.val_set = {cfg.tile.val_set!r} does not put there; use another tile.store")
+        raise StageError(
+            f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
+            f"tile.val_set = {cfg.tile.val_set!r} does not put there; use another tile.store"
+        )
 
 
 def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = True) -> StageResult:
@@ -71,30 +83,53 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     if not render_missing:
         missing = [t.label for levels in renders.values() for t in levels.values() if not cache.is_done(t)]
         if missing:
-            raise StageError(f"{len(missing)} renders are missing (e.g. {missing[0]}): run `admc-pipe render` "
-                             "or `admc-pipe dataset` first")
+            raise StageError(
+                f"{len(missing)} renders are missing (e.g. {missing[0]}): run `admc-pipe render` "
+                "or `admc-pipe dataset` first"
+            )
     tiles, retiled = [], []
     for spec in specs:
         levels = renders[spec.scene_id]
         split = splits[spec.scene_id][1]
-        task = Task(stage="tile", label=f"tile {spec.scene_id}", fn=tile.tile_scene, inputs=levels,
-                    code_version=TILE_CODE, params={
-                        "store": str(store_path), "split": split, "scene_id": spec.scene_id,
-                        "scene_hash": levels["reference"].params["scene_hash"],
-                        "patch_size": cfg.tile.patch_size, "crops_per_scene": cfg.tile.crops_per_scene,
-                        "candidates_per_crop": cfg.tile.candidates_per_crop, "seed": cfg.tile.seed,
-                        "refiner_base": cfg.tile.refiner_base if cfg.tile.oidn_base else None,
-                        **({"noise_maps": True} if noise_maps(cfg) else {}),
-                        **({"clean_targets": True} if cfg.tile.clean_targets else {})},
-                    source=render.scene_source(spec))
+        task = Task(
+            stage="tile",
+            label=f"tile {spec.scene_id}",
+            fn=tile.tile_scene,
+            inputs=levels,
+            code_version=TILE_CODE,
+            params={
+                "store": str(store_path),
+                "split": split,
+                "scene_id": spec.scene_id,
+                "scene_hash": levels["reference"].params["scene_hash"],
+                "patch_size": cfg.tile.patch_size,
+                "crops_per_scene": cfg.tile.crops_per_scene,
+                "candidates_per_crop": cfg.tile.candidates_per_crop,
+                "seed": cfg.tile.seed,
+                "refiner_base": cfg.tile.refiner_base if cfg.tile.oidn_base else None,
+                **({"noise_maps": True} if noise_maps(cfg) else {}),
+                **({"clean_targets": True} if cfg.tile.clean_targets else {}),
+            },
+            source=render.scene_source(spec),
+        )
         if cache.is_done(task) and not _scene_intact(store_path, split, spec.scene_id, retiled, noise_maps(cfg)):
             cache.forget(task)  # the store lost or damaged this scene: tile it again from the cached renders
         tiles.append(task)
     published, cached, renders_dir = run_corpus(cfg, tiles, renders, left_out, progress)
     summaries = [cache.summary(t) for t in tiles]
     everything = list(runner.collect(tiles).values())
-    return StageResult(specs, read_sidecars(renders, published), summaries, renders_dir, store_path,
-                       len(everything) - cached, cached, everything, retiled, skipped_files(left_out))
+    return StageResult(
+        specs,
+        read_sidecars(renders, published),
+        summaries,
+        renders_dir,
+        store_path,
+        len(everything) - cached,
+        cached,
+        everything,
+        retiled,
+        skipped_files(left_out),
+    )
 
 
 def noise_maps(cfg: Config) -> bool:
@@ -131,8 +166,9 @@ def check_patch_fits(cfg: Config, specs: list[SceneSpec]) -> None:
         else:
             source = f"render.resolution is {width}x{height}"
             fix.append("raise render.resolution")
-        raise ConfigError(f"config key 'tile.patch_size': {patch} is larger than the image, {source}; "
-                          f"{' or '.join(fix)}")
+        raise ConfigError(
+            f"config key 'tile.patch_size': {patch} is larger than the image, {source}; {' or '.join(fix)}"
+        )
 
 
 def existing_dataset(cfg: Config) -> StageResult:

@@ -23,6 +23,7 @@ NaN/Inf pixels are not errors: they are counted here and repaired by the denoise
 it did. Everything else that is wrong raises DenoiseInputError (or ExrError from the reader) naming
 the file.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -42,8 +43,14 @@ from .denoise_layers import build_layers, camera_normals, missing_roles
 if TYPE_CHECKING:  # reading and checking the input needs no torch, so a bad file is named in a second
     from admc.model.inference.result import DenoiseResult
 
-SUFFIXES = {"colour": ".hdr.exr", "albedo": ".alb.exr", "normal": ".nrm.exr", "diffuse": ".diffuse.exr",
-            "specular": ".specular.exr", "depth": ".depth.exr"}
+SUFFIXES = {
+    "colour": ".hdr.exr",
+    "albedo": ".alb.exr",
+    "normal": ".nrm.exr",
+    "diffuse": ".diffuse.exr",
+    "specular": ".specular.exr",
+    "depth": ".depth.exr",
+}
 """File name endings of the separate-file layout (the first three are Open Image Denoise's)."""
 
 
@@ -55,11 +62,11 @@ class DenoiseInputError(AdmcError, ValueError):
 class DenoiseInput:
     """Layers ready for FullImageDenoiser, where each came from, and what was assumed."""
 
-    layers: dict[str, np.ndarray]                 # diffuse, [specular], albedo, normal, [depth], [coverage]
-    sources: dict[str, Path]                      # layer -> the file it was read from
+    layers: dict[str, np.ndarray]  # diffuse, [specular], albedo, normal, [depth], [coverage]
+    sources: dict[str, Path]  # layer -> the file it was read from
     notes: list[str] = field(default_factory=list)
-    blender_layer: str | None = None              # a Blender file's view layer: the output keeps its layout
-    alpha: np.ndarray | None = None               # and its Combined alpha
+    blender_layer: str | None = None  # a Blender file's view layer: the output keeps its layout
+    alpha: np.ndarray | None = None  # and its Combined alpha
     attributes: dict = field(default_factory=dict)
 
     @property
@@ -93,10 +100,15 @@ def _load_renderer(path: Path, found: Recognised, names: list[str]) -> DenoiseIn
     missing = missing_roles(found)
     if missing:
         layers = sorted({name.rpartition(".")[0] or "R,G,B" for name in names})
-        hint = ("; in Blender switch on View Layer Properties > Passes > Data > Denoising Data (Cycles)"
-                if found.format.startswith("Blender") else "; name them with --layers ROLE=LAYER")
-        raise DenoiseInputError(f"{path}: read as {found.format}, lacks {', '.join(missing)} needed to denoise "
-                                f"(it holds {', '.join(layers)}){hint}")
+        hint = (
+            "; in Blender switch on View Layer Properties > Passes > Data > Denoising Data (Cycles)"
+            if found.format.startswith("Blender")
+            else "; name them with --layers ROLE=LAYER"
+        )
+        raise DenoiseInputError(
+            f"{path}: read as {found.format}, lacks {', '.join(missing)} needed to denoise "
+            f"(it holds {', '.join(layers)}){hint}"
+        )
     wanted = {n for role in found.channels.values() for n in role}
     wanted |= {n for role in found.light_passes.values() for n in role}
     if found.blender_layer is not None:
@@ -104,8 +116,14 @@ def _load_renderer(path: Path, found: Recognised, names: list[str]) -> DenoiseIn
     header, planes = read_channels(path, wanted)
     layers, notes = build_layers(path, found, planes)
     alpha_name = f"{found.blender_layer}.Combined.A" if found.blender_layer else "Combined.A"
-    result = DenoiseInput(layers, {name: path for name in layers}, notes, blender_layer=found.blender_layer,
-                          alpha=planes.get(alpha_name), attributes=found.attributes)
+    result = DenoiseInput(
+        layers,
+        {name: path for name in layers},
+        notes,
+        blender_layer=found.blender_layer,
+        alpha=planes.get(alpha_name),
+        attributes=found.attributes,
+    )
     if "specular" not in layers and found.light_passes:
         result.notes.append(f"{path.name}: no specular layer, only the diffuse network runs")
     _note_missing_depth(result, path.name)
@@ -127,10 +145,12 @@ def _sibling(base: Path, role: str) -> Path:
 def _load_multilayer(path: Path, present: list[str]) -> DenoiseInput:
     missing = [name for name in ("diffuse", "albedo", "normal") if name not in present]
     if missing:
-        raise DenoiseInputError(f"{path}: lacks layer(s) {', '.join(missing)} needed to denoise (it holds "
-                                f"{', '.join(present) or 'no admc layers'}); expected diffuse.R/G/B, "
-                                f"albedo.R/G/B, normal.X/Y/Z and optionally specular, depth.Z, coverage.A (or, as "
-                                f"separate files, {path.stem}.alb.exr and {path.stem}.nrm.exr beside it)")
+        raise DenoiseInputError(
+            f"{path}: lacks layer(s) {', '.join(missing)} needed to denoise (it holds "
+            f"{', '.join(present) or 'no admc layers'}); expected diffuse.R/G/B, "
+            f"albedo.R/G/B, normal.X/Y/Z and optionally specular, depth.Z, coverage.A (or, as "
+            f"separate files, {path.stem}.alb.exr and {path.stem}.nrm.exr beside it)"
+        )
     wanted = [name for name in (*DENOISER_LAYERS, *VARIANCE_LAYERS) if name in present]
     layers = read_exr(path, wanted)
     notes = []
@@ -151,12 +171,15 @@ def _load_separate(base: Path, given: Path, mapping: LayerMap) -> DenoiseInput:
         have, lack = ("diffuse", "specular") if files["diffuse"].exists() else ("specular", "diffuse")
         raise DenoiseInputError(f"{files[have]}: found without {files[lack]}; give both parts of the split or neither")
     if not split and not files["colour"].exists():
-        raise DenoiseInputError(f"{given}: no such file, and no colour file {files['colour'].name} or "
-                                f"{base.name}.exr beside it")
+        raise DenoiseInputError(
+            f"{given}: no such file, and no colour file {files['colour'].name} or {base.name}.exr beside it"
+        )
     for role in ("albedo", "normal"):
         if not files[role].exists():
-            raise DenoiseInputError(f"{files[role]}: missing; the {role} file is required beside "
-                                    f"{(files['diffuse'] if split else files['colour']).name}")
+            raise DenoiseInputError(
+                f"{files[role]}: missing; the {role} file is required beside "
+                f"{(files['diffuse'] if split else files['colour']).name}"
+            )
 
     roles = ["diffuse", "specular"] if split else ["colour"]
     roles += ["albedo", "normal"] + (["depth"] if files["depth"].exists() else [])
@@ -166,15 +189,18 @@ def _load_separate(base: Path, given: Path, mapping: LayerMap) -> DenoiseInput:
         layers[name] = _read_plain(files[role], channels=1 if role == "depth" else 3)
         sources[name] = files[role]
     _check_sizes(layers, sources)
-    found = Recognised("OIDN files", {"normal": ("R", "G", "B")}, normal_space=mapping.normal_space,
-                       camera_frame=mapping.camera_frame)
+    found = Recognised(
+        "OIDN files", {"normal": ("R", "G", "B")}, normal_space=mapping.normal_space, camera_frame=mapping.camera_frame
+    )
     if mapping.world_to_camera is not None:
         found.world_to_camera, found.camera_source = np.asarray(mapping.world_to_camera, np.float64), "given"
         found.normal_space = "world" if mapping.normal_space == "auto" else mapping.normal_space
     layers["normal"], space_note = camera_normals(files["normal"], found, layers["normal"])
     if not split:
-        notes = [f"{files['colour'].name}: one combined colour and no {base.name}.diffuse.exr/.specular.exr "
-                 f"split, denoised as diffuse only"]
+        notes = [
+            f"{files['colour'].name}: one combined colour and no {base.name}.diffuse.exr/.specular.exr "
+            f"split, denoised as diffuse only"
+        ]
     elif files["colour"].exists():
         notes = [f"{files['colour'].name}: not read, the diffuse/specular split is used"]
     else:
@@ -205,26 +231,35 @@ def _check_sizes(layers: dict[str, np.ndarray], sources: dict[str, Path]) -> Non
 def _note_missing_depth(result: DenoiseInput, where: str) -> None:
     """Tell the user that the denoiser will fill an absent depth (and coverage) with MISSING_LAYERS' values."""
     if "depth" not in result.layers:
-        result.notes.append(f"{where}: no depth, using the constant depth feature {MISSING_LAYERS['depth']} "
-                            f"(as for environment pixels) and coverage {MISSING_LAYERS['coverage']}")
+        result.notes.append(
+            f"{where}: no depth, using the constant depth feature {MISSING_LAYERS['depth']} "
+            f"(as for environment pixels) and coverage {MISSING_LAYERS['coverage']}"
+        )
 
 
 def output_paths(inputs: list[Path], output: Path | None = None) -> list[Path]:
     """Where each input's result goes: `output` for a single input, else INPUT.denoised.exr beside it
     (NAME.denoised.exr for NAME.hdr.exr). Refuses, before any work, a batch in which two inputs would
     write the same file or an output would replace an input of the batch."""
-    targets = [Path(output)] if output is not None else [
-        path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr") for path in inputs]
+    targets = (
+        [Path(output)]
+        if output is not None
+        else [path.with_name(path.name.removesuffix(".exr").removesuffix(".hdr") + ".denoised.exr") for path in inputs]
+    )
     first: dict[Path, Path] = {}
     given = {path.resolve(): path for path in inputs}
     for path, target in zip(inputs, targets):
         key = target.resolve()
         if key in first:
-            raise DenoiseInputError(f"{first[key]} and {path} would both be written to {target}; denoise them in "
-                                    "separate runs, each with its own --output")
+            raise DenoiseInputError(
+                f"{first[key]} and {path} would both be written to {target}; denoise them in "
+                "separate runs, each with its own --output"
+            )
         if key in given:
-            raise DenoiseInputError(f"{target}: the output for {path} is also an input of this batch; denoise "
-                                    "them in separate runs, or give --output for one input")
+            raise DenoiseInputError(
+                f"{target}: the output for {path} is also an input of this batch; denoise "
+                "them in separate runs, or give --output for one input"
+            )
         first[key] = path
     return targets
 
@@ -250,8 +285,13 @@ def write_denoised(path: Path, result: DenoiseResult, *, source: DenoiseInput, l
         return
     planes = {BEAUTY: result.image}
     if layers:
-        planes.update({name: part for name, part in (("diffuse", result.diffuse), ("specular", result.specular))
-                       if part is not None})
+        planes.update(
+            {
+                name: part
+                for name, part in (("diffuse", result.diffuse), ("specular", result.specular))
+                if part is not None
+            }
+        )
     write_exr(path, planes, precision="float", attributes={"admc_branches": ",".join(result.branches)})
 
 

@@ -19,6 +19,7 @@ Recognised (each by the names that program writes):
 The normals' frame travels with the result (`Recognised.normal_space`); `denoise_normals` turns them
 into admc's camera frame or refuses.
 """
+
 from __future__ import annotations
 
 import tomllib
@@ -40,10 +41,14 @@ CAMERA_FRAMES = ("admc", "blender", "cycles", "pbrt", "mitsuba")
 
 # Blender's pass names: Blender 5's, then the short ones multilayer EXRs of Blender 2.8-4.x carry.
 BLENDER_PASSES = {
-    "diffuse_direct": ("Diffuse Direct", "DiffDir"), "diffuse_indirect": ("Diffuse Indirect", "DiffInd"),
+    "diffuse_direct": ("Diffuse Direct", "DiffDir"),
+    "diffuse_indirect": ("Diffuse Indirect", "DiffInd"),
     "diffuse_colour": ("Diffuse Color", "DiffCol"),
-    "albedo": ("Denoising Albedo",), "normal": ("Denoising Normal",), "world_normal": ("Normal",),
-    "depth": ("Denoising Depth", "Depth"), "environment": ("Environment", "Env"),
+    "albedo": ("Denoising Albedo",),
+    "normal": ("Denoising Normal",),
+    "world_normal": ("Normal",),
+    "depth": ("Denoising Depth", "Depth"),
+    "environment": ("Environment", "Env"),
 }
 MITSUBA_NORMALS = ("nn", "sh_normal", "normal", "normals", "sh_normals", "shading_normal")
 MITSUBA_DEPTHS = ("dd.y", "dd", "depth")
@@ -65,8 +70,7 @@ class LayerMap:
     source: str = "--layers"
 
     @classmethod
-    def parse(cls, items: list[str] | None, normal_space: str = "auto",
-              world_to_camera: str | None = None) -> LayerMap:
+    def parse(cls, items: list[str] | None, normal_space: str = "auto", world_to_camera: str | None = None) -> LayerMap:
         """From `--layers` values (each `ROLE=LAYER`, `ROLE=CH1,CH2,CH3`, or a .toml file's path) and the
         `--normal-space` / `--world-to-camera` options (which win over the file's keys)."""
         mapping = cls()
@@ -77,8 +81,9 @@ class LayerMap:
                 role, _, value = item.partition("=")
                 mapping._set(role.strip(), value.strip(), "--layers")
             else:
-                raise LayerMapError(f"--layers {item!r}: expected ROLE=LAYER (roles: {', '.join(ROLES)}) or a "
-                                    ".toml file")
+                raise LayerMapError(
+                    f"--layers {item!r}: expected ROLE=LAYER (roles: {', '.join(ROLES)}) or a .toml file"
+                )
         if normal_space != "auto":
             mapping._set("normal_space", normal_space, "--normal-space")
         if world_to_camera:
@@ -116,8 +121,9 @@ class LayerMap:
             except (TypeError, ValueError):
                 matrix = ()
             if len(matrix) not in (9, 16) or not np.isfinite(matrix).all():
-                raise LayerMapError(f"{where}: world_to_camera must be 16 (4x4, row by row) or 9 numbers, got "
-                                    f"{value!r}")
+                raise LayerMapError(
+                    f"{where}: world_to_camera must be 16 (4x4, row by row) or 9 numbers, got {value!r}"
+                )
             self.world_to_camera = matrix
         elif key in ROLES:
             names = tuple(n.strip() for n in value.split(",")) if isinstance(value, str) else tuple(value)
@@ -125,8 +131,10 @@ class LayerMap:
                 raise LayerMapError(f"{where}: {key} must name a layer or its channels, got {value!r}")
             self.roles[key] = names
         else:
-            raise LayerMapError(f"{where}: unknown key {key!r}; the roles are {', '.join(ROLES)}, and normal_space, "
-                                "world_to_camera, camera_frame")
+            raise LayerMapError(
+                f"{where}: unknown key {key!r}; the roles are {', '.join(ROLES)}, and normal_space, "
+                "world_to_camera, camera_frame"
+            )
 
     @property
     def declares(self) -> bool:
@@ -140,11 +148,11 @@ class Recognised:
 
     format: str
     channels: dict[str, tuple[str, ...]]
-    normal_space: str                        # "camera" (in camera_frame), "world", or "auto" (unknown)
+    normal_space: str  # "camera" (in camera_frame), "world", or "auto" (unknown)
     camera_frame: str = "admc"
     world_to_camera: np.ndarray | None = None
-    camera_source: str = "file"               # where world_to_camera came from: "file" or "given"
-    blender_layer: str | None = None          # the view layer of a Blender file (its output keeps it)
+    camera_source: str = "file"  # where world_to_camera came from: "file" or "given"
+    blender_layer: str | None = None  # the view layer of a Blender file (its output keeps it)
     light_passes: dict[str, tuple[str, ...]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     attributes: dict = field(default_factory=dict)
@@ -166,8 +174,11 @@ def layer_channels(layers: dict[str, list[str]], layer: str, count: int) -> tupl
         return None
     prefix = f"{layer}." if layer else ""
     if count == 1:
-        return (prefix + have[0],) if len(have) == 1 else next(
-            ((prefix + c,) for c in ("Z", "Y", "T", "V", "R") if c in have), None)
+        return (
+            (prefix + have[0],)
+            if len(have) == 1
+            else next(((prefix + c,) for c in ("Z", "Y", "T", "V", "R") if c in have), None)
+        )
     for order in (*RGB_NAMES, *XYZ_NAMES):
         if all(c in have for c in order[:count]):
             return tuple(prefix + c for c in order[:count])
@@ -177,8 +188,9 @@ def layer_channels(layers: dict[str, list[str]], layer: str, count: int) -> tupl
 def recognise(path: Path, header: dict, names: list[str], mapping: LayerMap) -> Recognised | None:
     """The format of a single EXR with these channels, or None (then it may be an OIDN file set)."""
     layers = group(names)
-    found = (_admc(layers) or _blender(layers, header) or _pbrt(layers, header) or _mitsuba(layers, header)
-             or _plain(layers))
+    found = (
+        _admc(layers) or _blender(layers, header) or _pbrt(layers, header) or _mitsuba(layers, header) or _plain(layers)
+    )
     if mapping.roles:
         found = _apply_mapping(path, layers, names, mapping, found)
     if found is not None:
@@ -189,9 +201,11 @@ def recognise(path: Path, header: dict, names: list[str], mapping: LayerMap) -> 
 def _admc(layers) -> Recognised | None:
     if "diffuse" not in layers:
         return None
-    channels = {name: tuple(f"{name}.{c}" for c in LAYERS[name].channels) for name in
-                ("diffuse", "specular", "albedo", "normal", "depth", "coverage", "diffuse_var", "specular_var")
-                if name in layers and all(c in layers[name] for c in LAYERS[name].channels)}
+    channels = {
+        name: tuple(f"{name}.{c}" for c in LAYERS[name].channels)
+        for name in ("diffuse", "specular", "albedo", "normal", "depth", "coverage", "diffuse_var", "specular_var")
+        if name in layers and all(c in layers[name] for c in LAYERS[name].channels)
+    }
     return Recognised("admc", channels, normal_space="camera")
 
 
@@ -207,37 +221,53 @@ def _blender(layers, header) -> Recognised | None:
 
     # Cycles writes its Denoising Normal in its camera space (z forward), the Normal pass in world space.
     camera_normal = find("normal", 3)
-    channels = {"colour": layer_channels(layers, prefix + "Combined", 3), "albedo": find("albedo", 3),
-                "normal": camera_normal or find("world_normal", 3), "depth": find("depth", 1),
-                "environment": find("environment", 3)}
+    channels = {
+        "colour": layer_channels(layers, prefix + "Combined", 3),
+        "albedo": find("albedo", 3),
+        "normal": camera_normal or find("world_normal", 3),
+        "depth": find("depth", 1),
+        "environment": find("environment", 3),
+    }
     channels = {role: names for role, names in channels.items() if names}
     light = {role: find(role, 3) for role in ("diffuse_direct", "diffuse_indirect", "diffuse_colour")}
-    found = Recognised("Blender", channels, normal_space="camera" if camera_normal else "world",
-                       camera_frame="cycles" if camera_normal else "blender", blender_layer=view_layer,
-                       attributes={k: v for k, v in header.items() if k == "BlenderMultiChannel"})
+    found = Recognised(
+        "Blender",
+        channels,
+        normal_space="camera" if camera_normal else "world",
+        camera_frame="cycles" if camera_normal else "blender",
+        blender_layer=view_layer,
+        attributes={k: v for k, v in header.items() if k == "BlenderMultiChannel"},
+    )
     if all(light.values()):
         found.light_passes = light
     else:
-        found.notes.append(f"no diffuse light passes (Diffuse Direct, Diffuse Indirect, Diffuse Color) in view layer "
-                           f"{view_layer or '(none)'}: Combined is denoised as diffuse only; switch them on in "
-                           "Blender's View Layer Properties > Passes > Light for the diffuse/specular split")
+        found.notes.append(
+            f"no diffuse light passes (Diffuse Direct, Diffuse Indirect, Diffuse Color) in view layer "
+            f"{view_layer or '(none)'}: Combined is denoised as diffuse only; switch them on in "
+            "Blender's View Layer Properties > Passes > Light for the diffuse/specular split"
+        )
     return found
 
 
 def _pbrt(layers, header) -> Recognised | None:
     if "Albedo" not in layers or "" not in layers:
         return None
-    normal = layer_channels(layers, "Ns", 3) or (("Nsx", "Nsy", "Nsz") if {"Nsx", "Nsy", "Nsz"} <= set(layers[""])
-                                                  else None)
-    position = layer_channels(layers, "P", 3) or (("Px", "Py", "Pz") if {"Px", "Py", "Pz"} <= set(layers[""])
-                                                   else None)
-    channels = {"colour": layer_channels(layers, "", 3), "albedo": layer_channels(layers, "Albedo", 3),
-                "normal": normal, "position": position}
+    normal = layer_channels(layers, "Ns", 3) or (
+        ("Nsx", "Nsy", "Nsz") if {"Nsx", "Nsy", "Nsz"} <= set(layers[""]) else None
+    )
+    position = layer_channels(layers, "P", 3) or (("Px", "Py", "Pz") if {"Px", "Py", "Pz"} <= set(layers[""]) else None)
+    channels = {
+        "colour": layer_channels(layers, "", 3),
+        "albedo": layer_channels(layers, "Albedo", 3),
+        "normal": normal,
+        "position": position,
+    }
     spp = header.get("samplesPerPixel")
     if "Variance" in layers and spp:
         channels["diffuse_var"] = layer_channels(layers, "Variance", 3)
-    found = Recognised("pbrt-v4 gbuffer", {k: v for k, v in channels.items() if v}, normal_space="auto",
-                       camera_frame="pbrt")
+    found = Recognised(
+        "pbrt-v4 gbuffer", {k: v for k, v in channels.items() if v}, normal_space="auto", camera_frame="pbrt"
+    )
     if "worldToCamera" in header:
         found.world_to_camera = np.asarray(header["worldToCamera"], np.float64).reshape(4, 4)
     if spp:
@@ -248,11 +278,15 @@ def _pbrt(layers, header) -> Recognised | None:
 def _mitsuba(layers, header) -> Recognised | None:
     if not str(header.get("generatedBy", "")).startswith("Mitsuba"):
         return None
-    channels = {"colour": layer_channels(layers, "", 3), "albedo": layer_channels(layers, "albedo", 3),
-                "normal": next((c for name in MITSUBA_NORMALS if (c := layer_channels(layers, name, 3))), None),
-                "depth": next((c for name in MITSUBA_DEPTHS if (c := layer_channels(layers, name, 1))), None)}
-    return Recognised("Mitsuba aov", {k: v for k, v in channels.items() if v}, normal_space="world",
-                      camera_frame="mitsuba")
+    channels = {
+        "colour": layer_channels(layers, "", 3),
+        "albedo": layer_channels(layers, "albedo", 3),
+        "normal": next((c for name in MITSUBA_NORMALS if (c := layer_channels(layers, name, 3))), None),
+        "depth": next((c for name in MITSUBA_DEPTHS if (c := layer_channels(layers, name, 1))), None),
+    }
+    return Recognised(
+        "Mitsuba aov", {k: v for k, v in channels.items() if v}, normal_space="world", camera_frame="mitsuba"
+    )
 
 
 def _plain(layers) -> Recognised | None:
@@ -271,8 +305,10 @@ def _apply_mapping(path: Path, layers, names: list[str], mapping: LayerMap, foun
             continue
         channels = layer_channels(layers, given[0], count) if len(given) == 1 else None
         if channels is None:
-            raise LayerMapError(f"{path}: {mapping.source} maps {role} to {','.join(given)}, which the file does not "
-                                f"hold as {count} channel(s); its layers are {', '.join(sorted(layers)) or '(none)'}")
+            raise LayerMapError(
+                f"{path}: {mapping.source} maps {role} to {','.join(given)}, which the file does not "
+                f"hold as {count} channel(s); its layers are {', '.join(sorted(layers)) or '(none)'}"
+            )
         found.channels[role] = channels
     if {"diffuse", "specular"} & set(mapping.roles):
         found.light_passes = {}

@@ -7,6 +7,7 @@ result, so a file whose normals are in world space is rotated with the camera ma
 unknown (OIDN file sets, files mapped with `--layers`), it is detected: camera-space normals of what a
 camera sees face it.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,7 +34,7 @@ NO_HIT_DEPTH = 1e9
 CAMERA_HINTS = {
     "Blender": "in Blender's Python console: print(*[v for r in C.scene.camera.matrix_world.inverted() for v in r])",
     "Mitsuba aov": "the inverse of the sensor's to_world: print(*sensor.world_transform().inverse().matrix.numpy()"
-                   ".ravel())",
+    ".ravel())",
 }
 
 
@@ -47,17 +48,21 @@ def missing_roles(found: Recognised) -> list[str]:
     return missing + [role for role in ("albedo", "normal") if role not in found.channels]
 
 
-def build_layers(path: Path, found: Recognised, planes: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray],
-                                                                                         list[str]]:
+def build_layers(
+    path: Path, found: Recognised, planes: dict[str, np.ndarray]
+) -> tuple[dict[str, np.ndarray], list[str]]:
     """admc's layers (diffuse, [specular], albedo, normal, [depth, coverage], [variances]) and notes."""
+
     def stack(role: str) -> np.ndarray:
         return np.stack([planes[name] for name in found.channels[role]], axis=-1).astype(np.float32)
 
     notes = [f"{path.name}: read as {found.format}", *(f"{path.name}: {n}" for n in found.notes)]
     layers: dict[str, np.ndarray] = {}
     if found.light_passes:
-        direct, indirect, colour = (np.stack([planes[n] for n in found.light_passes[k]], axis=-1)
-                                    for k in ("diffuse_direct", "diffuse_indirect", "diffuse_colour"))
+        direct, indirect, colour = (
+            np.stack([planes[n] for n in found.light_passes[k]], axis=-1)
+            for k in ("diffuse_direct", "diffuse_indirect", "diffuse_colour")
+        )
         layers["diffuse"] = ((direct + indirect) * colour).astype(np.float32)
         layers["specular"] = np.maximum(stack("colour") - layers["diffuse"], 0.0).astype(np.float32)
     elif "diffuse" in found.channels:
@@ -105,20 +110,24 @@ def camera_normals(path: Path, found: Recognised, normal: np.ndarray) -> tuple[n
             raise NormalSpaceError(
                 f"{path}: the normals ({where}) are in world space and the file carries no camera to turn them into "
                 f"camera space, which admc reads; give the world-to-camera matrix with --world-to-camera "
-                f"'16 numbers, row by row' ({hint}), or --normal-space camera if they are camera-space already")
+                f"'16 numbers, row by row' ({hint}), or --normal-space camera if they are camera-space already"
+            )
         return world_to_admc_camera(normal, found.world_to_camera, found.camera_frame), (
             f"{path.name}: world-space normals ({where}) rotated into camera space with the "
-            f"{'given' if found.camera_source == 'given' else 'file' + chr(39) + 's'} world-to-camera matrix")
+            f"{'given' if found.camera_source == 'given' else 'file' + chr(39) + 's'} world-to-camera matrix"
+        )
     share, count = facing_share(to_admc_camera(normal, found.camera_frame))
     if share >= FACING_MIN:
         return to_admc_camera(normal, found.camera_frame), (
             f"{path.name}: normals ({where}) taken as camera space: {share:.0%} of the {count} pixels with a normal "
-            f"face the camera (--normal-space world --world-to-camera ... if they are world-space)")
+            f"face the camera (--normal-space world --world-to-camera ... if they are world-space)"
+        )
     raise NormalSpaceError(
         f"{path}: the normals ({where}) face away from the camera on {1 - share:.0%} of the {count} pixels with one: "
         f"they look like world-space normals, and admc reads camera-space ones; give the camera with "
         f"--normal-space world --world-to-camera '16 numbers, row by row', or --normal-space camera to take them as "
-        f"they are")
+        f"they are"
+    )
 
 
 def _from_positions(path: Path, found: Recognised, position: np.ndarray, normal: np.ndarray):
@@ -140,10 +149,13 @@ def _from_positions(path: Path, found: Recognised, position: np.ndarray, normal:
                 f"{path}: cannot tell whether its positions and normals are in camera or world space (they follow no "
                 f"perspective camera of {which}); "
                 f"declare it with --normal-space camera|world (pbrt-v4's gbuffer film writes camera space unless "
-                f"\"string coordinatesystem\" \"world\")")
+                f'"string coordinatesystem" "world")'
+            )
         found.normal_space = best
-        note = (f"{path.name}: positions and normals are in {best} space ({fits[best]:.0%} of the pixels lie on "
-                f"their pixel's ray" + (f", {fits[other]:.0%} in {other} space)" if other else ")"))
+        note = (
+            f"{path.name}: positions and normals are in {best} space ({fits[best]:.0%} of the pixels lie on "
+            f"their pixel's ray" + (f", {fits[other]:.0%} in {other} space)" if other else ")")
+        )
     else:
         note = ""
     camera_position = candidates.get(found.normal_space, position)

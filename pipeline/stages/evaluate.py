@@ -3,6 +3,7 @@
 The stage builds the methods (noisy input, OIDN, OptiX where it runs, the learned model from each
 weights file, named as Table 1's columns), runs the evaluation and renders the page from its result.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -14,8 +15,13 @@ from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import Config
 from admc.pipeline.tiler import tile
 from admc.pipeline.evaluation import html, scoring
-from admc.pipeline.evaluation.baselines import (Denoiser, NoisyInput, OidnDenoiser, OptixDenoiser,
-                                                optix_unavailable_reason)
+from admc.pipeline.evaluation.baselines import (
+    Denoiser,
+    NoisyInput,
+    OidnDenoiser,
+    OptixDenoiser,
+    optix_unavailable_reason,
+)
 from admc.pipeline.evaluation.inputs import find_test_images
 from admc.pipeline.evaluation.records import EvalResult, ScoredImage
 from admc.pipeline.evaluation.table1 import build_table1
@@ -45,13 +51,15 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
     on enough images whatever the corpus size. The ood split is the out-of-family set alone."""
     if cfg.eval.split == "ood":
         return render.ood_corpus(cfg)
-    chosen = [s for s in render.corpus(cfg)
-              if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split]
+    chosen = [
+        s for s in render.corpus(cfg) if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split
+    ]
     if cfg.eval.split == "test":
         families = list(cfg.eval.test_families)
         try:
-            chosen += scenes.procedural_corpus(families, cfg.eval.test_scenes_per_family * len(families),
-                                               cfg.eval.test_seed, cfg.eval.test_resolution)
+            chosen += scenes.procedural_corpus(
+                families, cfg.eval.test_scenes_per_family * len(families), cfg.eval.test_seed, cfg.eval.test_resolution
+            )
         except scenes.SceneError as exc:
             raise EvalStageError(f"config key 'eval.test_families': {exc}") from None
     return chosen
@@ -65,8 +73,9 @@ def named_weights(specs: list[str]) -> list[tuple[str | None, Path]]:
     for spec in specs:
         name, sep, rest = spec.partition("=")
         if not spec or (sep and not Path(spec).exists() and not (name and rest)):
-            raise EvalStageError(f"--weights {spec!r}: give a weights file, PATH or NAME=PATH with both a column "
-                                 "name and a file")
+            raise EvalStageError(
+                f"--weights {spec!r}: give a weights file, PATH or NAME=PATH with both a column name and a file"
+            )
         if sep and not Path(spec).exists():
             named.append((name, Path(rest)))
         else:
@@ -108,9 +117,18 @@ def learned_denoisers(cfg: Config, weights: list[str] | None, device: str = "aut
     models = []
     for name, path in named:
         for ensemble, dark_pass, suffix in settings:
-            model = load_model(cfg, path, DenoiserOptions(device=device, name=name, ensemble=ensemble,
-                                                          dark_pass=dark_pass, engine=cfg.eval.engine,
-                                                          keep_resolved=cfg.eval.keep_resolved))
+            model = load_model(
+                cfg,
+                path,
+                DenoiserOptions(
+                    device=device,
+                    name=name,
+                    ensemble=ensemble,
+                    dark_pass=dark_pass,
+                    engine=cfg.eval.engine,
+                    keep_resolved=cfg.eval.keep_resolved,
+                ),
+            )
             model.name += suffix
             models.append(model)
     return models
@@ -131,8 +149,11 @@ class ReportFigures:
                 return
             self.scene_ids.append(scored.scene_id)
         metrics = {name: {m.label: getattr(scored.records[name], m.key) for m in METRICS} for name in scored.outputs}
-        self.groups.append(html.report_group(html.ReportImage(scored.scene_id, scored.spp, scored.reference,
-                                                              dict(scored.outputs), metrics)))
+        self.groups.append(
+            html.report_group(
+                html.ReportImage(scored.scene_id, scored.spp, scored.reference, dict(scored.outputs), metrics)
+            )
+        )
 
 
 def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
@@ -161,20 +182,35 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     specs = eval_scenes(cfg)
     if not specs:
         none_built = " and eval.test_scenes_per_family is 0" if cfg.eval.split == "test" else ""
-        raise EvalStageError(f"no scene of the corpus falls in the {cfg.eval.split!r} split "
-                             f"(tile.split = {list(cfg.tile.split)}){none_built}; add scenes or change tile.split")
+        raise EvalStageError(
+            f"no scene of the corpus falls in the {cfg.eval.split!r} split "
+            f"(tile.split = {list(cfg.tile.split)}){none_built}; add scenes or change tile.split"
+        )
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(scoring_config(cfg), progress, specs).renders_dir
     images = find_test_images(renders_dir, scene_ids)
     denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
     figures = ReportFigures()
-    result = scoring.evaluate(images, denoisers, out_dir, progress=progress, repeats=cfg.eval.repeats,
-                               warmup=cfg.eval.warmup, not_run=not_run, on_image=figures)
+    result = scoring.evaluate(
+        images,
+        denoisers,
+        out_dir,
+        progress=progress,
+        repeats=cfg.eval.repeats,
+        warmup=cfg.eval.warmup,
+        not_run=not_run,
+        on_image=figures,
+    )
     devices = ", ".join(f"{name}: {device}" for name, device in result.devices.items())
     report = html.write_report(
-        out_dir, title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes", table=build_table1(result),
+        out_dir,
+        title=f"admc evaluation: {len(scene_ids)} {cfg.eval.split} scenes",
+        table=build_table1(result),
         metric_definitions={m.label: m.definition for m in METRICS},
-        plots=[result.files["error_vs_time"]], groups=figures.groups, device=devices,
-        notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"])
+        plots=[result.files["error_vs_time"]],
+        groups=figures.groups,
+        device=devices,
+        notes=[f"{len(images)} test images; the page shows the first {REPORT_SCENES} scenes"],
+    )
     return EvalOutcome(result, report, scene_ids)

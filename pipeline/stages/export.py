@@ -1,4 +1,5 @@
 """`admc-pipe export`: a weights file's generators as ONNX graphs plus the JSON of what runs around them."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
 """`admc-pipe render`: every (scene, spp) of the corpus rendered once, through the task cache."""
+
 from __future__ import annotations
 
 from admc.pipeline.config import Config
@@ -16,5 +17,14 @@ def render_corpus(cfg: Config, progress: bool = True, specs: list[SceneSpec] | N
     renders = render.render_tasks(cfg, specs)
     tasks = [t for levels in renders.values() for t in levels.values()]
     published, cached, renders_dir = run_corpus(cfg, tasks, renders, left_out, progress)
-    return StageResult(specs, read_sidecars(renders, published), [], renders_dir, None, len(tasks) - cached, cached,
-                       tasks, skipped=skipped_files(left_out))
+    return StageResult(
+        specs,
+        read_sidecars(renders, published),
+        [],
+        renders_dir,
+        None,
+        len(tasks) - cached,
+        cached,
+        tasks,
+        skipped=skipped_files(left_out),
+    )

@@ -1,4 +1,5 @@
 """What a person checks after `make dataset`: counts, value ranges, sanitisation, a contact sheet."""
+
 from __future__ import annotations
 
 import hashlib
@@ -49,7 +50,9 @@ def contact_sheet(store: Path, out_png: Path, split: str = "train", rows: int = 
         albedo = (np.clip(row["features"][ALBEDO], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
         normal = (np.clip(row["features"][NORMAL], 0, 1).transpose(1, 2, 0) * 255).astype(np.uint8)
         gap = np.full((noisy.shape[0], 4, 3), 255, np.uint8)
-        lines.append(np.concatenate([to_ldr(reinhard(noisy)), gap, to_ldr(reinhard(ref)), gap, albedo, gap, normal], axis=1))
+        lines.append(
+            np.concatenate([to_ldr(reinhard(noisy)), gap, to_ldr(reinhard(ref)), gap, albedo, gap, normal], axis=1)
+        )
         lines.append(np.full((4, lines[-1].shape[1], 3), 255, np.uint8))
     with publishing(out_png) as tmp:
         Image.fromarray(np.concatenate(lines[:-1], axis=0)).save(tmp, format="PNG")

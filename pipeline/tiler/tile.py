@@ -10,6 +10,7 @@ and its crops are stored as the rows' bases, the input of an admc+oidn refiner. 
 branch's noise map (from the render's variance buffer: transforms.noise_forward) is stored per row,
 what model.noise_input reads.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -51,8 +52,9 @@ def importance_map(noisy: dict[str, np.ndarray], reference: dict[str, np.ndarray
     return np.clip(score, 0.0, 1e6)
 
 
-def choose_crops(score: np.ndarray, n: int, patch: int, candidates_per_crop: int,
-                 rng: np.random.Generator) -> np.ndarray:
+def choose_crops(
+    score: np.ndarray, n: int, patch: int, candidates_per_crop: int, rng: np.random.Generator
+) -> np.ndarray:
     """(n, 2) crop origins (y, x) drawn without replacement from candidates weighted by mean score."""
     h, w = score.shape
     if h < patch or w < patch:
@@ -61,8 +63,7 @@ def choose_crops(score: np.ndarray, n: int, patch: int, candidates_per_crop: int
     k = max(n * candidates_per_crop, n)
     ys = rng.integers(0, h - patch + 1, size=k)
     xs = rng.integers(0, w - patch + 1, size=k)
-    sums = (integral[ys + patch, xs + patch] - integral[ys, xs + patch]
-            - integral[ys + patch, xs] + integral[ys, xs])
+    sums = integral[ys + patch, xs + patch] - integral[ys, xs + patch] - integral[ys + patch, xs] + integral[ys, xs]
     weights = sums / patch**2
     weights = weights + NOISE_FLOOR * (weights.mean() + 1e-12)
     picked = rng.choice(k, size=n, replace=False, p=weights / weights.sum())
@@ -82,7 +83,7 @@ def _clean(layers: dict[str, np.ndarray], counts: dict, prefix: str) -> dict[str
 
 def _crops(image: np.ndarray, origins: np.ndarray, patch: int) -> np.ndarray:
     """(H, W, C) -> (n, C, patch, patch)."""
-    return np.stack([image[y:y + patch, x:x + patch].transpose(2, 0, 1) for y, x in origins])
+    return np.stack([image[y : y + patch, x : x + patch].transpose(2, 0, 1) for y, x in origins])
 
 
 def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
@@ -92,8 +93,13 @@ def _fp16(name: str, x: np.ndarray, clamped: dict) -> np.ndarray:
     return x16
 
 
-def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_specular: np.ndarray | None,
-                  refiner_base: str | None, noise_maps: bool = False) -> dict[str, np.ndarray]:
+def _level_images(
+    layers: dict[str, np.ndarray],
+    ref_diffuse: np.ndarray,
+    ref_specular: np.ndarray | None,
+    refiner_base: str | None,
+    noise_maps: bool = False,
+) -> dict[str, np.ndarray]:
     """One spp level's whole images in the store's transforms, (H, W, C) per row array. `ref_diffuse` is
     linear; `ref_specular` is already transformed (it does not depend on the level), None without specular;
     `refiner_base` the refining base whose OIDN bases to add, None for none.
@@ -103,9 +109,11 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
     albedo varies (texture detail within a pixel, glass): one reference entry per row.
     """
     albedo = layers["albedo"]
-    images = {"noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),
-              "ref_diffuse": tf.diffuse_forward(ref_diffuse, albedo),
-              "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"])}
+    images = {
+        "noisy_diffuse": tf.diffuse_forward(layers["diffuse"], albedo),
+        "ref_diffuse": tf.diffuse_forward(ref_diffuse, albedo),
+        "features": tf.features(layers["normal"], layers["depth"], albedo, layers["coverage"]),
+    }
     if ref_specular is not None:
         images["noisy_specular"] = tf.specular_forward(layers["specular"])
         images["ref_specular"] = ref_specular
@@ -121,13 +129,26 @@ def _level_images(layers: dict[str, np.ndarray], ref_diffuse: np.ndarray, ref_sp
     return images
 
 
-def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str, scene_id: str,
-               scene_hash: str, patch_size: int, crops_per_scene: int, candidates_per_crop: int,
-               seed: int, refiner_base: str | None = None, noise_maps: bool = False,
-               clean_targets: bool = False) -> dict:
+def tile_scene(
+    out_dir: Path,
+    inputs: dict[str, Path],
+    *,
+    store: str,
+    split: str,
+    scene_id: str,
+    scene_hash: str,
+    patch_size: int,
+    crops_per_scene: int,
+    candidates_per_crop: int,
+    seed: int,
+    refiner_base: str | None = None,
+    noise_maps: bool = False,
+    clean_targets: bool = False,
+) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}. `refiner_base`: the
     refining base whose OIDN bases to store (None: none); `clean_targets`: the reference denoised by OIDN
     is what the rows' targets are cut from (tile.clean_targets)."""
+
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
 
@@ -141,13 +162,15 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
     h, w = reference["diffuse"].shape[:2]
 
     rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
-    origins = choose_crops(importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size,
-                           candidates_per_crop, rng)
+    origins = choose_crops(
+        importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size, candidates_per_crop, rng
+    )
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
-        for name, image in _level_images(noisy[key], reference["diffuse"], ref_specular, refiner_base,
-                                         noise_maps).items():
+        for name, image in _level_images(
+            noisy[key], reference["diffuse"], ref_specular, refiner_base, noise_maps
+        ).items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
         rows.setdefault("origin", []).append(origins)
@@ -158,16 +181,36 @@ def tile_scene(out_dir: Path, inputs: dict[str, Path], *, store: str, split: str
         arrays[name] = joined if name in ("spp", "origin") else _fp16(name, joined, clamped)
     arrays["crop"] = np.arange(len(arrays["spp"]), dtype=np.int32)
 
-    stats = {name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
-             for name, a in arrays.items() if a.ndim == 4}
-    patches.write_scene(store, split, scene_id, arrays, {
-        **({"clean_targets": True} if clean_targets else {}),
-        "scene_hash": scene_hash, "image_size": [w, h], "sanitization": sanitized,
-        "fp16_clamped": clamped, "stats": stats, "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
-        "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
-        **({"base": describe_oidn(refiner_base)} if refiner_base is not None else {}),
-    })
-    return {"split": split, "scene_id": scene_id, "rows": int(len(arrays["spp"])), "crops": int(len(origins)),
-            "has_specular": has_specular, "has_base": refiner_base is not None,
-            **({"has_noise": True} if noise_maps else {}),
-            "sanitized": sanitized, "fp16_clamped": clamped}
+    stats = {
+        name: {"mean": float(a.astype(np.float32).mean()), "max": float(a.max())}
+        for name, a in arrays.items()
+        if a.ndim == 4
+    }
+    patches.write_scene(
+        store,
+        split,
+        scene_id,
+        arrays,
+        {
+            **({"clean_targets": True} if clean_targets else {}),
+            "scene_hash": scene_hash,
+            "image_size": [w, h],
+            "sanitization": sanitized,
+            "fp16_clamped": clamped,
+            "stats": stats,
+            "spp_levels_rendered": [int(k[3:]) for k in spp_inputs],
+            "render_keys": {name: Path(path).name for name, path in sorted(inputs.items())},  # the cached renders used
+            **({"base": describe_oidn(refiner_base)} if refiner_base is not None else {}),
+        },
+    )
+    return {
+        "split": split,
+        "scene_id": scene_id,
+        "rows": int(len(arrays["spp"])),
+        "crops": int(len(origins)),
+        "has_specular": has_specular,
+        "has_base": refiner_base is not None,
+        **({"has_noise": True} if noise_maps else {}),
+        "sanitized": sanitized,
+        "fp16_clamped": clamped,
+    }

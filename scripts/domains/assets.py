@@ -4,6 +4,7 @@ Textures are linear RGB EXRs (Mitsuba's `bitmap` reads EXR as linear), albedos k
 [0.03, 0.85]. Meshes are Wavefront OBJ with per-vertex normals and texture coordinates. Everything is
 drawn from a seeded generator, so the same seed writes the same bytes on any machine.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,7 +25,7 @@ def noise(rng: np.random.Generator, size: int = SIZE, octaves: int = 4, base: in
     """Tileable fractal value noise in [0, 1] (bilinear lattice, smooth-stepped)."""
     total, weights = np.zeros((size, size)), 0.0
     for octave in range(octaves):
-        cells = base * 2 ** octave
+        cells = base * 2**octave
         lattice = rng.uniform(0.0, 1.0, (cells, cells))
         pos = (np.arange(size) + 0.5) * cells / size - 0.5
         i0 = np.floor(pos).astype(int)
@@ -34,7 +35,7 @@ def noise(rng: np.random.Generator, size: int = SIZE, octaves: int = 4, base: in
         rows = lattice[a][:, a] * (1 - t)[None, :] + lattice[a][:, b] * t[None, :]
         rows2 = lattice[b][:, a] * (1 - t)[None, :] + lattice[b][:, b] * t[None, :]
         layer = rows * (1 - t)[:, None] + rows2 * t[:, None]
-        weight = 0.5 ** octave
+        weight = 0.5**octave
         total, weights = total + weight * layer, weights + weight
     return total / weights
 
@@ -53,8 +54,8 @@ def wood_planks(rng: np.random.Generator, tone, planks: int = 4) -> np.ndarray:
     offset = rng.uniform(0, 1, planks)[board]
     grain = 0.5 + 0.5 * np.sin(2 * math.pi * (v * planks * 6 + 3 * grain_noise + offset * 7))
     base = np.asarray(tone, float)
-    image = _mix(grain ** 3, base, base * 0.6) * shade[..., None]
-    ends = (np.abs(((u + offset * 0.5) % 0.5) - 0.25) < 0.004)  # board ends, staggered per board
+    image = _mix(grain**3, base, base * 0.6) * shade[..., None]
+    ends = np.abs(((u + offset * 0.5) % 0.5) - 0.25) < 0.004  # board ends, staggered per board
     seam = (np.abs(v * planks - np.round(v * planks)) < 0.03) | ends
     image[seam] *= 0.35
     return np.clip(image, 0.03, 0.85)
@@ -132,7 +133,7 @@ def marble(rng: np.random.Generator, colour=(0.8, 0.78, 0.74)) -> np.ndarray:
     u, v = _uv()
     turbulence = noise(rng, octaves=5, base=3)
     veins = np.abs(np.sin(2 * math.pi * (u * 2 + v + 4 * turbulence)))
-    return np.clip(_mix(veins ** 0.2, np.asarray(colour) * 0.35, colour), 0.03, 0.85)
+    return np.clip(_mix(veins**0.2, np.asarray(colour) * 0.35, colour), 0.03, 0.85)
 
 
 def wallpaper(rng: np.random.Generator, colour, accent) -> np.ndarray:

@@ -4,6 +4,7 @@ every SMALL_LIGHT_EVERY-th one small and bright, and 1-4 objects: sphere, cube, 
 disk or panel). Every DIFFUSE_ONLY_EVERY-th scene is purely diffuse; every other has at least one
 rough/smooth plastic, rough/smooth conductor or glass object. Only Mitsuba's built-in shapes and its
 checkerboard texture: no mesh or image files."""
+
 from __future__ import annotations
 
 import colorsys
@@ -13,36 +14,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenexml import FILM, add, add_matrix, add_point, frame, number, rotation_x, rotation_y, translate_scale, triple
+from .scenexml import FILM, add, add_matrix, add_point, frame, rotation_x, rotation_y, translate_scale, triple
 
 DIFFUSE_ONLY_EVERY = 3
 SMALL_LIGHT_EVERY = 4
 SPECULAR_KINDS = ("roughplastic", "plastic", "roughconductor", "conductor", "dielectric")
 CLOSED_SHAPES = ("sphere", "cube", "cylinder")  # glass needs a closed surface
 WHITE = (0.725, 0.71, 0.68)  # Mitsuba's Cornell box: walls, then its red and green
-WALL_PAIRS = [((0.63, 0.065, 0.05), (0.14, 0.45, 0.091)),
-              ((0.08, 0.2, 0.6), (0.7, 0.6, 0.1)),
-              ((0.75, 0.35, 0.08), (0.08, 0.45, 0.45)),
-              ((0.4, 0.12, 0.55), (0.4, 0.6, 0.12))]
+WALL_PAIRS = [
+    ((0.63, 0.065, 0.05), (0.14, 0.45, 0.091)),
+    ((0.08, 0.2, 0.6), (0.7, 0.6, 0.1)),
+    ((0.75, 0.35, 0.08), (0.08, 0.45, 0.45)),
+    ((0.4, 0.12, 0.55), (0.4, 0.6, 0.12)),
+]
 METALS = ("Au", "Ag", "Cu", "Al", "Cr")
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 def colour(rng: np.random.Generator, saturation=(0.2, 0.85), value=(0.3, 0.8)) -> tuple[float, ...]:

@@ -1,6 +1,7 @@
 """`exterior`: one small house on a lawn (the set of a seed: brick walls, a tiled gable roof, windows, a
 door, a paved path, a fence, trees and a car) under Mitsuba's sun and sky at four times of day, seen
 from eye level and from a drone around it."""
+
 from __future__ import annotations
 
 import colorsys
@@ -10,9 +11,14 @@ from pathlib import Path
 import numpy as np
 
 from . import assets
-from .scenexml import Scene, bitmap, box, bsdf, frame, rotation_y, sun_direction, two_sided
+from .scenexml import Scene, bitmap, box, bsdf, frame, rotation_y, sun_direction
 
-TIMES = ((35.0, 55.0, 2.5), (120.0, 30.0, 3.0), (200.0, 14.0, 4.0), (300.0, 8.0, 5.0))  # sun azimuth, elevation, turbidity
+TIMES = (
+    (35.0, 55.0, 2.5),
+    (120.0, 30.0, 3.0),
+    (200.0, 14.0, 4.0),
+    (300.0, 8.0, 5.0),
+)  # sun azimuth, elevation, turbidity
 SKY = 2.0  # sunsky scale
 
 
@@ -26,27 +32,38 @@ class House:
         self.seed = seed
         self.width, self.depth, self.wall = rng.uniform(7.0, 9.0), rng.uniform(5.5, 7.0), rng.uniform(2.8, 3.2)
         self.pitch = rng.uniform(0.55, 0.8)  # roof rise over half the depth
-        name = lambda part: out_dir / f"exterior-{seed}-{part}"
+
+        def name(part):
+            return out_dir / f"exterior-{seed}-{part}"
+
         brick = np.array([0.5, 0.2, 0.12]) * rng.uniform(0.7, 1.2)
         self.tex = {
             "brick": assets.write_texture(name("brick.exr"), assets.bricks(rng, brick, rows=8)),
-            "roof": assets.write_texture(name("roof.exr"), assets.roof_tiles(rng, _colour(rng, (0.3, 0.7), (0.15, 0.4)))),
+            "roof": assets.write_texture(
+                name("roof.exr"), assets.roof_tiles(rng, _colour(rng, (0.3, 0.7), (0.15, 0.4)))
+            ),
             "grass": assets.write_texture(name("grass.exr"), assets.grass(rng)),
             "paving": assets.write_texture(name("paving.exr"), assets.tiles(rng, np.array([0.45, 0.43, 0.4]), 4)),
             "leaves": assets.write_texture(name("leaves.exr"), assets.leaves(rng)),
             "door": assets.write_texture(name("door.exr"), assets.wood_planks(rng, np.array([0.35, 0.18, 0.08]), 5)),
         }
         rise = self.pitch * self.depth / 2
-        self.gable = assets.write_obj(name("gable.obj"), assets.prism([[-self.depth / 2, 0], [self.depth / 2, 0], [0, rise]], 0.3))
+        self.gable = assets.write_obj(
+            name("gable.obj"), assets.prism([[-self.depth / 2, 0], [self.depth / 2, 0], [0, rise]], 0.3)
+        )
         self.car_colour = _colour(rng, (0.6, 1.0), (0.2, 0.6))
-        self.trees = [(rng.uniform(-14, 14), rng.uniform(-12, -6) if k % 2 else rng.uniform(6, 12), rng.uniform(2.5, 4.5))
-                      for k in range(5)]
+        self.trees = [
+            (rng.uniform(-14, 14), rng.uniform(-12, -6) if k % 2 else rng.uniform(6, 12), rng.uniform(2.5, 4.5))
+            for k in range(5)
+        ]
 
     def frame(self, index: int) -> Scene:
         azimuth, elevation, turbidity = TIMES[index % len(TIMES)]
         rng = np.random.default_rng([self.seed, 7202, index])
-        s = Scene(f" exterior set {self.seed}, frame {index} (sun at {elevation:g} degrees), written by "
-                  "scripts/make_domain_scenes.py ")
+        s = Scene(
+            f" exterior set {self.seed}, frame {index} (sun at {elevation:g} degrees), written by "
+            "scripts/make_domain_scenes.py "
+        )
         s.sunsky(sun_direction(azimuth, elevation), turbidity=turbidity, sun_scale=SKY, sky_scale=SKY, albedo=0.2)
         self._ground(s)
         self._house(s)
@@ -59,7 +76,11 @@ class House:
         s.shape("rectangle", "grass", frame((0, 0, 0), (0, 1, 0), (0, 0, -1), 500, 500))
         s.bsdf("paving", bsdf("roughplastic", texture=bitmap("", self.tex["paving"], (1, 6)), alpha=0.4))
         s.shape("rectangle", "paving", frame((0, 0.01, self.depth / 2 + 4.5), (0, 1, 0), (0, 0, -1), 0.8, 4.5))
-        s.shape("rectangle", "paving", frame((-self.width / 2 - 2.5, 0.01, self.depth / 2 + 3), (0, 1, 0), (0, 0, -1), 1.6, 3))
+        s.shape(
+            "rectangle",
+            "paving",
+            frame((-self.width / 2 - 2.5, 0.01, self.depth / 2 + 3), (0, 1, 0), (0, 0, -1), 1.6, 3),
+        )
 
     def _house(self, s: Scene) -> None:
         w, d, h = self.width, self.depth, self.wall
@@ -89,8 +110,12 @@ class House:
             up = np.array([0, rise, -side * d / 2])
             centre = (0, h + rise / 2, side * d / 4)
             s.shape("rectangle", "roof", frame(centre, normal, up, w / 2 + over, slope / 2))
-            s.shape("obj", "brick-side", box((side * (w / 2 - 0.15), h, 0), (1, 1, 1)) @ rotation_y(math.pi / 2),
-                    filename=self.gable)
+            s.shape(
+                "obj",
+                "brick-side",
+                box((side * (w / 2 - 0.15), h, 0), (1, 1, 1)) @ rotation_y(math.pi / 2),
+                filename=self.gable,
+            )
         s.shape("cube", "brick", box((w / 4, h + rise * 0.8, -d / 6), (0.35, rise * 0.6, 0.35)))  # chimney
 
     def _window(self, s: Scene, centre, normal) -> None:
@@ -98,8 +123,13 @@ class House:
         c = np.asarray(centre, float) + normal * 0.02
         s.shape("rectangle", "glass", frame(c, normal, (0, 1, 0), 0.55, 0.6))
         side = np.cross((0, 1, 0), normal)
-        for offset, half in ((side * 0.6, (0.05, 0.65)), (-side * 0.6, (0.05, 0.65)), ((0, 0.65, 0), (0.65, 0.05)),
-                             ((0, -0.65, 0), (0.7, 0.06)), ((0, 0, 0), (0.03, 0.6))):
+        for offset, half in (
+            (side * 0.6, (0.05, 0.65)),
+            (-side * 0.6, (0.05, 0.65)),
+            ((0, 0.65, 0), (0.65, 0.05)),
+            ((0, -0.65, 0), (0.7, 0.06)),
+            ((0, 0, 0), (0.03, 0.6)),
+        ):
             hx = abs(side[0]) * half[0] + abs(normal[0]) * 0.04
             hz = abs(side[2]) * half[0] + abs(normal[2]) * 0.04
             s.shape("cube", "trim", box(c + np.asarray(offset, float), (hx, half[1], hz)))
@@ -129,15 +159,28 @@ class House:
         s.shape("cube", "glass", box((cx, 1.2, cz - 0.2), (0.81, 0.2, 1.0)))
         for dz in (-1.3, 1.3):
             for dx in (-0.86, 0.86):
-                s.shape("cylinder", "tyre", p0=(cx + dx - 0.1, 0.33, cz + dz), p1=(cx + dx + 0.1, 0.33, cz + dz), radius=0.33)
-                s.shape("disk", "chrome", frame((cx + dx * 1.13, 0.33, cz + dz), (np.sign(dx), 0, 0), (0, 1, 0), 0.18, 0.18))
+                s.shape(
+                    "cylinder",
+                    "tyre",
+                    p0=(cx + dx - 0.1, 0.33, cz + dz),
+                    p1=(cx + dx + 0.1, 0.33, cz + dz),
+                    radius=0.33,
+                )
+                s.shape(
+                    "disk", "chrome", frame((cx + dx * 1.13, 0.33, cz + dz), (np.sign(dx), 0, 0), (0, 1, 0), 0.18, 0.18)
+                )
 
     def _camera(self, s: Scene, rng: np.random.Generator) -> None:
         drone = rng.uniform() < 0.3
         angle = rng.uniform(-math.pi * 0.75, math.pi * 0.75)  # mostly from the front and sides
         distance = rng.uniform(9.0, 15.0) if drone else rng.uniform(7.0, 13.0)
-        eye = np.array([distance * math.sin(angle), rng.uniform(6.0, 10.0) if drone else rng.uniform(1.4, 1.9),
-                        distance * math.cos(angle)])
+        eye = np.array(
+            [
+                distance * math.sin(angle),
+                rng.uniform(6.0, 10.0) if drone else rng.uniform(1.4, 1.9),
+                distance * math.cos(angle),
+            ]
+        )
         target = np.array([rng.uniform(-2, 2), rng.uniform(1.0, 3.0), rng.uniform(-1, 1)])
         s.camera(eye, target, rng.uniform(45, 65))
 

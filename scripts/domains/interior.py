@@ -1,9 +1,9 @@
 """`interior`: one furnished living room (the set of a seed) seen from many cameras under three lighting
 states: day (sun and sky through the window), dusk (sky only, downlights on), night (downlights and a
 floor lamp). What a studio fine-tunes on: one set, its materials and textures in every frame."""
+
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -25,27 +25,44 @@ class Room:
         self.seed, self.rng = seed, rng
         self.width, self.depth = rng.uniform(5.0, 6.0), rng.uniform(4.2, 5.0)
         self.window = (rng.uniform(-0.5, 0.1), rng.uniform(2.0, 2.5), 0.55, 2.35)  # z centre, width, sill, top
-        tex = lambda name, image: assets.write_texture(out_dir / f"interior-{seed}-{name}.exr", image)
+
+        def tex(name, image):
+            return assets.write_texture(out_dir / f"interior-{seed}-{name}.exr", image)
+
         self.textures = {
             "floor": tex("floor", assets.wood_planks(rng, np.array([0.55, 0.33, 0.16]) * rng.uniform(0.7, 1.2))),
             "table": tex("table", assets.wood_planks(rng, np.array([0.4, 0.22, 0.1]) * rng.uniform(0.7, 1.2), 2)),
             "sofa": tex("sofa", assets.fabric(rng, assets_colour(rng, (0.2, 0.6), (0.25, 0.6)))),
-            "rug": tex("rug", assets.tiles(rng, assets_colour(rng, (0.3, 0.8), (0.3, 0.7)), 6,
-                                           grout=assets_colour(rng, (0.1, 0.4), (0.6, 0.8)))),
-            "wallpaper": tex("wallpaper", assets.wallpaper(rng, assets_colour(rng, (0.05, 0.3), (0.6, 0.8)),
-                                                           assets_colour(rng, (0.3, 0.7), (0.3, 0.6)))),
+            "rug": tex(
+                "rug",
+                assets.tiles(
+                    rng, assets_colour(rng, (0.3, 0.8), (0.3, 0.7)), 6, grout=assets_colour(rng, (0.1, 0.4), (0.6, 0.8))
+                ),
+            ),
+            "wallpaper": tex(
+                "wallpaper",
+                assets.wallpaper(
+                    rng, assets_colour(rng, (0.05, 0.3), (0.6, 0.8)), assets_colour(rng, (0.3, 0.7), (0.3, 0.6))
+                ),
+            ),
             "marble": tex("marble", assets.marble(rng)),
             "painting": tex("painting", assets.painting(rng)),
             "leaves": tex("leaves", assets.leaves(rng)),
             "grass": tex("grass", assets.grass(rng)),
         }
-        self.vase = assets.write_obj(out_dir / f"interior-{seed}-vase.obj", assets.lathe(
-            0.02 + 0.09 * np.sin(np.linspace(0.3, 2.8, 24)) ** rng.uniform(0.5, 1.5), rng.uniform(0.3, 0.45)))
+        self.vase = assets.write_obj(
+            out_dir / f"interior-{seed}-vase.obj",
+            assets.lathe(
+                0.02 + 0.09 * np.sin(np.linspace(0.3, 2.8, 24)) ** rng.uniform(0.5, 1.5), rng.uniform(0.3, 0.45)
+            ),
+        )
         self.pot = assets.write_obj(out_dir / f"interior-{seed}-pot.obj", assets.lathe(np.linspace(0.14, 0.2, 8), 0.35))
         self.paint = assets_colour(rng, (0.02, 0.15), (0.65, 0.82))
         self.vase_colour = assets_colour(rng, (0.4, 0.9), (0.3, 0.7))
-        self.books = [(assets_colour(rng, (0.3, 0.9), (0.15, 0.7)), rng.uniform(0.18, 0.3), rng.uniform(0.025, 0.05))
-                      for _ in range(60)]
+        self.books = [
+            (assets_colour(rng, (0.3, 0.9), (0.15, 0.7)), rng.uniform(0.18, 0.3), rng.uniform(0.025, 0.05))
+            for _ in range(60)
+        ]
         self.sun = [(rng.uniform(55, 125), rng.uniform(18, 45)) for _ in range(4)]
         self.obstacles: list[tuple[float, float, float, float, float]] = []  # x0, x1, z0, z1, height
 
@@ -75,8 +92,17 @@ class Room:
         zc, width, sill, top = self.window
         z0, z1 = zc - width / 2, zc + width / 2
         x = w / 2
-        for (za, zb, ya, yb) in ((-d / 2, d / 2, 0, sill), (-d / 2, d / 2, top, h), (-d / 2, z0, sill, top), (z1, d / 2, sill, top)):
-            s.shape("rectangle", "paint", frame((x, (ya + yb) / 2, (za + zb) / 2), (-1, 0, 0), (0, 1, 0), (zb - za) / 2, (yb - ya) / 2))
+        for za, zb, ya, yb in (
+            (-d / 2, d / 2, 0, sill),
+            (-d / 2, d / 2, top, h),
+            (-d / 2, z0, sill, top),
+            (z1, d / 2, sill, top),
+        ):
+            s.shape(
+                "rectangle",
+                "paint",
+                frame((x, (ya + yb) / 2, (za + zb) / 2), (-1, 0, 0), (0, 1, 0), (zb - za) / 2, (yb - ya) / 2),
+            )
         s.bsdf("lawn", bsdf("diffuse", texture=bitmap("", self.textures["grass"], (20, 20))))
         s.shape("rectangle", "lawn", frame((0, -0.01, 0), (0, 1, 0), (0, 0, -1), 40, 40))  # seen through the window
         s.bsdf("frame-white", bsdf("roughplastic", (0.8, 0.8, 0.78), alpha=0.2))
@@ -132,8 +158,17 @@ class Room:
                 if x + 2 * thick > bx + 0.58:
                     break
                 name = f"book-{k}-{round(x * 100)}"
-                s.bsdf(name, bsdf("roughplastic" if tall > 0.24 else "diffuse", colour, **({"alpha": 0.25} if tall > 0.24 else {})))
-                s.shape("cube", name, box((x + thick, 0.035 + 0.45 * k + tall / 2, back + 0.17), (thick * 0.95, tall / 2, 0.11)))
+                s.bsdf(
+                    name,
+                    bsdf(
+                        "roughplastic" if tall > 0.24 else "diffuse", colour, **({"alpha": 0.25} if tall > 0.24 else {})
+                    ),
+                )
+                s.shape(
+                    "cube",
+                    name,
+                    box((x + thick, 0.035 + 0.45 * k + tall / 2, back + 0.17), (thick * 0.95, tall / 2, 0.11)),
+                )
                 x += 2 * thick
         # dining table with a marble top, two chairs
         s.bsdf("marble", bsdf("roughplastic", texture=bitmap("", self.textures["marble"], (1, 1)), alpha=0.03))
@@ -169,37 +204,62 @@ class Room:
         w, d = self.width, self.depth
         if state != "night":
             azimuth, elevation = self.sun[index % len(self.sun)]
-            s.sunsky(sun_direction(azimuth, elevation), turbidity=3.0, sun_scale=DAYLIGHT * SUN_SHARE if state == "day" else 0.0,
-                     sky_scale=DAYLIGHT if state == "day" else DAYLIGHT / 3)
+            s.sunsky(
+                sun_direction(azimuth, elevation),
+                turbidity=3.0,
+                sun_scale=DAYLIGHT * SUN_SHARE if state == "day" else 0.0,
+                sky_scale=DAYLIGHT if state == "day" else DAYLIGHT / 3,
+            )
         on = state != "day"
         s.bsdf("emitter-body", bsdf("diffuse", (0.0, 0.0, 0.0)))
         for x in (-w / 4, w / 4):
             for z in (-d / 4, d / 4):
-                s.shape("disk", "emitter-body", frame((x, HEIGHT - 0.001, z), (0, -1, 0), (0, 0, 1), 0.15, 0.15),
-                        emitter=area(warm_white(0.5) * 13.0) if on else None)  # broad panels: few fireflies
+                s.shape(
+                    "disk",
+                    "emitter-body",
+                    frame((x, HEIGHT - 0.001, z), (0, -1, 0), (0, 0, 1), 0.15, 0.15),
+                    emitter=area(warm_white(0.5) * 13.0) if on else None,
+                )  # broad panels: few fireflies
         lx, lz = -w / 2 + 0.4, -d / 2 + 0.4
         s.shape("cylinder", "chrome", p0=(lx, 0, lz), p1=(lx, 1.45, lz), radius=0.015)
         s.shape("disk", "chrome", frame((lx, 0.01, lz), (0, 1, 0), (0, 0, -1), 0.16, 0.16))
         s.bsdf("shade", two_sided(bsdf("diffuse", (0.85, 0.8, 0.68))))
         s.shape("cylinder", "shade", p0=(lx, 1.35, lz), p1=(lx, 1.65, lz), radius=0.2)
-        s.shape("sphere", "emitter-body", center=(lx, 1.5, lz), radius=0.08,
-                emitter=area(warm_white(1.0) * 16.0) if state == "night" else None)
+        s.shape(
+            "sphere",
+            "emitter-body",
+            center=(lx, 1.5, lz),
+            radius=0.08,
+            emitter=area(warm_white(1.0) * 16.0) if state == "night" else None,
+        )
         self.obstacles.append((lx - 0.25, lx + 0.25, lz - 0.25, lz + 0.25, 1.7))
 
     # -- camera ----------------------------------------------------------------------------------------
     def _camera(self, s: Scene, rng: np.random.Generator) -> None:
         w, d = self.width, self.depth
         zc = self.window[0]
-        anchors = [(-w / 2 + 0.6, 0.5, 0), (-w / 2 + 1.7, 0.45, 0), (0.6, 1.0, -d / 2 + 0.2), (w / 2 - 1.3, 0.75, -d / 2 + 1.2),
-                   (-0.4, 1.5, d / 2), (-w / 2, 1.6, 0), (w / 2 - 0.45, 0.8, zc + 1.2), (-w / 2 + 0.4, 1.4, -d / 2 + 0.4),
-                   (w / 2, 1.5, zc)]  # the window last: close-ups leave it out (they would look out of it)
+        anchors = [
+            (-w / 2 + 0.6, 0.5, 0),
+            (-w / 2 + 1.7, 0.45, 0),
+            (0.6, 1.0, -d / 2 + 0.2),
+            (w / 2 - 1.3, 0.75, -d / 2 + 1.2),
+            (-0.4, 1.5, d / 2),
+            (-w / 2, 1.6, 0),
+            (w / 2 - 0.45, 0.8, zc + 1.2),
+            (-w / 2 + 0.4, 1.4, -d / 2 + 0.4),
+            (w / 2, 1.5, zc),
+        ]  # the window last: close-ups leave it out (they would look out of it)
         close = rng.uniform() < 0.25  # a close-up of one piece, else a view across the room
         for _ in range(500):
-            eye = np.array([rng.uniform(-w / 2 + 0.4, w / 2 - 0.4), rng.uniform(0.9, 1.8), rng.uniform(-d / 2 + 0.4, d / 2 - 0.3)])
+            eye = np.array(
+                [rng.uniform(-w / 2 + 0.4, w / 2 - 0.4), rng.uniform(0.9, 1.8), rng.uniform(-d / 2 + 0.4, d / 2 - 0.3)]
+            )
             target = np.asarray(anchors[int(rng.integers(len(anchors) - close))], float) + rng.uniform(-0.3, 0.3, 3)
             distance = np.linalg.norm(target - eye)
-            blocked = any(x0 - 0.25 < eye[0] < x1 + 0.25 and z0 - 0.25 < eye[2] < z1 + 0.25 and eye[1] < top + 0.3
-                          for x0, x1, z0, z1, top in self.obstacles)
+            blocked = any(
+                x0 - 0.25 < eye[0] < x1 + 0.25 and z0 - 0.25 < eye[2] < z1 + 0.25 and eye[1] < top + 0.3
+                for x0, x1, z0, z1, top in self.obstacles
+            )
             if not blocked and (1.0 < distance < 1.7 if close else distance > 2.6):
                 break
         fov = rng.uniform(35, 48) if close else rng.uniform(50, 75)
@@ -208,6 +268,7 @@ class Room:
 
 def assets_colour(rng: np.random.Generator, saturation, value) -> np.ndarray:
     import colorsys
+
     return np.array(colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(*saturation), rng.uniform(*value)))
 
 

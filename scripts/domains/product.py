@@ -1,6 +1,7 @@
 """`product`: a product shot on a turntable. One set per seed (a glass bottle with a metal cap, a glazed
 mug, a wooden box and a brushed-metal tin on a glossy turntable before a seamless paper sweep), turned
 through a full revolution across the frames, seen from three camera heights under three softbox setups."""
+
 from __future__ import annotations
 
 import colorsys
@@ -28,18 +29,27 @@ class Turntable:
         self.glaze = _colour(rng, (0.5, 0.95), (0.25, 0.7))
         self.tin = ("Al", "Cu", "Cr")[int(rng.integers(3))]
         self.cap = ("Au", "Cr", "Cu")[int(rng.integers(3))]
-        name = lambda part: out_dir / f"product-{seed}-{part}"
-        bottle = np.concatenate([np.full(10, 0.075), 0.075 - 0.05 * np.sin(np.linspace(0, math.pi / 2, 8)), np.full(4, 0.022)])
+
+        def name(part):
+            return out_dir / f"product-{seed}-{part}"
+
+        bottle = np.concatenate(
+            [np.full(10, 0.075), 0.075 - 0.05 * np.sin(np.linspace(0, math.pi / 2, 8)), np.full(4, 0.022)]
+        )
         self.bottle_height = rng.uniform(0.22, 0.3)
         self.bottle = assets.write_obj(name("bottle.obj"), assets.lathe(bottle, self.bottle_height))
         self.band = assets.write_obj(name("band.obj"), assets.lathe(np.full(2, 0.0605), 0.05))
         mug = np.concatenate([[0.055], np.linspace(0.06, 0.07, 12)])
         self.mug = assets.write_obj(name("mug.obj"), assets.lathe(mug, 0.13))
-        self.handle = assets.write_obj(name("handle.obj"), assets.prism([[0, -0.04], [0.03, -0.03], [0.03, 0.03], [0, 0.04]], 0.015))
+        self.handle = assets.write_obj(
+            name("handle.obj"), assets.prism([[0, -0.04], [0.03, -0.03], [0.03, 0.03], [0, 0.04]], 0.015)
+        )
         self.cove = assets.write_obj(name("cove.obj"), assets.cove(1.0, 6.0))
         self.wood = assets.write_texture(name("wood.exr"), assets.wood_planks(rng, np.array([0.5, 0.3, 0.14]), 3))
-        self.label = assets.write_texture(name("label.exr"), assets.wallpaper(rng, _colour(rng, (0.0, 0.2), (0.7, 0.85)),
-                                                                              _colour(rng, (0.6, 1.0), (0.2, 0.5))))
+        self.label = assets.write_texture(
+            name("label.exr"),
+            assets.wallpaper(rng, _colour(rng, (0.0, 0.2), (0.7, 0.85)), _colour(rng, (0.6, 1.0), (0.2, 0.5))),
+        )
         self.layout = rng.uniform(0, 2 * math.pi)
 
     def frame(self, index: int, frames: int) -> Scene:
@@ -66,7 +76,10 @@ class Turntable:
 
     def _products(self, s: Scene, turn: float) -> None:
         spin = rotation_y(turn)
-        at = lambda x, y, z: (spin @ [x, y, z, 1.0])[:3]
+
+        def at(x, y, z):
+            return (spin @ [x, y, z, 1.0])[:3]
+
         a = self.layout
         (bx, bz), (mx, mz), (wx, wz) = [(0.2 * math.cos(a + k * 2.1), 0.2 * math.sin(a + k * 2.1)) for k in range(3)]
         s.bsdf("glass", bsdf("dielectric", int_ior=1.5))
@@ -90,8 +103,11 @@ class Turntable:
     def _lights(self, s: Scene, setup: str) -> None:
         s.bsdf("softbox", bsdf("diffuse", (0.0, 0.0, 0.0)))
         lights = {
-            "key-fill-rim": [((-1.2, 1.4, 1.0), 0.5, 0.5, 10.0, 0.2), ((1.6, 0.8, 1.4), 0.9, 0.7, 1.5, 0.0),
-                             ((0.6, 1.6, -1.2), 0.12, 0.8, 12.0, 0.0)],
+            "key-fill-rim": [
+                ((-1.2, 1.4, 1.0), 0.5, 0.5, 10.0, 0.2),
+                ((1.6, 0.8, 1.4), 0.9, 0.7, 1.5, 0.0),
+                ((0.6, 1.6, -1.2), 0.12, 0.8, 12.0, 0.0),
+            ],
             "top-soft": [((0.0, 2.2, 0.3), 0.8, 0.8, 6.0, 0.1), ((-1.8, 0.6, 0.8), 0.5, 0.5, 1.5, 0.4)],
             "low-hard": [((1.3, 0.5, 0.9), 0.1, 0.1, 300.0, 0.8), ((-1.5, 1.8, -0.4), 0.6, 0.3, 4.0, 0.0)],
         }[setup]
@@ -99,8 +115,12 @@ class Turntable:
             position = np.asarray(position, float)
             normal = (np.array([0, 0.2, 0]) - position) / np.linalg.norm(position - [0, 0.2, 0])
             up = np.cross(np.cross(normal, [0, 1, 0]), normal)
-            s.shape("rectangle", "softbox", frame(position, normal, up, half_u, half_v),
-                    emitter=area(warm_white(warmth) * radiance))
+            s.shape(
+                "rectangle",
+                "softbox",
+                frame(position, normal, up, half_u, half_v),
+                emitter=area(warm_white(warmth) * radiance),
+            )
 
 
 def write(out_dir: Path, seed: int, frames: int) -> list[Path]:

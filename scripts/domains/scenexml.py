@@ -1,5 +1,6 @@
 """Writing Mitsuba 3 XML scenes with ElementTree: typed properties, transforms, named BSDFs, shapes,
 cameras and lights. Every domain generator builds its frames with `Scene`."""
+
 from __future__ import annotations
 
 import math
@@ -56,8 +57,10 @@ def rotation_x(angle: float) -> np.ndarray:
 
 
 def translate_scale(offset, scale) -> tuple[np.ndarray, np.ndarray]:
-    return (np.block([[np.eye(3), np.reshape(np.asarray(offset, float), (3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]),
-            np.diag([*scale, 1.0]))
+    return (
+        np.block([[np.eye(3), np.reshape(np.asarray(offset, float), (3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]),
+        np.diag([*scale, 1.0]),
+    )
 
 
 def box(center, half, yaw: float = 0.0) -> np.ndarray:

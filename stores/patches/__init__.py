@@ -40,18 +40,58 @@ shards of up to SHARD_PATCHES patches (few files per scene). Zarr checksums only
 flipped bytes inside a compressed chunk mostly decode to wrong values without any error, so each
 scene records a checksum per array and `damaged_arrays` compares them.
 """
+
 from __future__ import annotations
 
-from admc.stores.patches.format import (BASE_IMAGES, FORMAT, FORMAT_VERSION, SPLITS, STAGING, SHARD_PATCHES, ROW_IMAGES,
-                                        CROP_IMAGES, SPECULAR_ARRAYS, REQUIRED_ROOT_ATTRS, REQUIRED_SCENE_ATTRS,
-                                        LAYOUT, NOISE_IMAGES, PatchStoreError, exists, fingerprint, has_noise_maps, has_scene, list_scenes,
-                                        damaged_arrays)
+from admc.stores.patches.format import (
+    BASE_IMAGES,
+    FORMAT,
+    FORMAT_VERSION,
+    SPLITS,
+    STAGING,
+    SHARD_PATCHES,
+    ROW_IMAGES,
+    CROP_IMAGES,
+    SPECULAR_ARRAYS,
+    REQUIRED_ROOT_ATTRS,
+    REQUIRED_SCENE_ATTRS,
+    LAYOUT,
+    NOISE_IMAGES,
+    PatchStoreError,
+    exists,
+    fingerprint,
+    has_noise_maps,
+    has_scene,
+    list_scenes,
+    damaged_arrays,
+)
 from admc.stores.patches.reader import PatchReader, store_summary
 from admc.stores.patches.writer import create_store, discard_staging, write_scene
 
 __all__ = [
-    "BASE_IMAGES", "CROP_IMAGES", "FORMAT", "FORMAT_VERSION", "LAYOUT", "NOISE_IMAGES", "PatchReader", "PatchStoreError", "REQUIRED_ROOT_ATTRS",
-    "REQUIRED_SCENE_ATTRS", "ROW_IMAGES", "SHARD_PATCHES", "SPECULAR_ARRAYS", "SPLITS", "STAGING", "create_store",
-    "damaged_arrays", "discard_staging", "exists", "fingerprint", "has_noise_maps", "has_scene", "list_scenes", "store_summary",
+    "BASE_IMAGES",
+    "CROP_IMAGES",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "LAYOUT",
+    "NOISE_IMAGES",
+    "PatchReader",
+    "PatchStoreError",
+    "REQUIRED_ROOT_ATTRS",
+    "REQUIRED_SCENE_ATTRS",
+    "ROW_IMAGES",
+    "SHARD_PATCHES",
+    "SPECULAR_ARRAYS",
+    "SPLITS",
+    "STAGING",
+    "create_store",
+    "damaged_arrays",
+    "discard_staging",
+    "exists",
+    "fingerprint",
+    "has_noise_maps",
+    "has_scene",
+    "list_scenes",
+    "store_summary",
     "write_scene",
 ]

@@ -1,4 +1,5 @@
 """The patch store's format: its constants and layout, errors, opening, listing, fingerprint, checksums."""
+
 from __future__ import annotations
 
 import hashlib
@@ -37,10 +38,13 @@ _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")  # "+" joins a scene's constr
 LAYOUT = {
     "rows": "one row per (image crop, spp): noisy_*, features, spp, crop",
     "crops": "one reference entry per row (crop[r] == r as written): ref_*, origin; row r's reference is "
-             "ref_*[crop[r]]",
-    "noisy_diffuse": "transform.diffuse of the noisy render", "noisy_specular": "transform.specular",
-    "features": "transform.feature_channels", "ref_diffuse": "transform.diffuse of the reference",
-    "ref_specular": "transform.specular of the reference", "origin": "(y, x) of the crop in the image",
+    "ref_*[crop[r]]",
+    "noisy_diffuse": "transform.diffuse of the noisy render",
+    "noisy_specular": "transform.specular",
+    "features": "transform.feature_channels",
+    "ref_diffuse": "transform.diffuse of the reference",
+    "ref_specular": "transform.specular of the reference",
+    "origin": "(y, x) of the crop in the image",
     "base_diffuse": "optional, per row: transform.diffuse of OIDN's denoised noisy diffuse (scene attr 'base')",
     "base_specular": "optional, per row: transform.specular of OIDN's denoised noisy specular",
 }
@@ -55,8 +59,9 @@ _RECOVERY = "run `admc-pipe dataset` with the same config: it re-tiles the damag
 
 def _damage_error(path: Path, split: str, scene_id: str, arrays: list[str], cause: str) -> PatchStoreError:
     """The one message for a damaged scene: store, split/scene, arrays, what is wrong, how to recover."""
-    return PatchStoreError(f"patch store {path}: scene {split}/{scene_id}, array {', '.join(arrays)}: {cause}; "
-                           f"{_RECOVERY}")
+    return PatchStoreError(
+        f"patch store {path}: scene {split}/{scene_id}, array {', '.join(arrays)}: {cause}; {_RECOVERY}"
+    )
 
 
 @contextmanager
@@ -93,9 +98,11 @@ def _open_root(path: Path) -> zarr.Group:
     try:
         root = zarr.open_group(store=LocalStore(path, read_only=True), mode="r")
     except Exception as exc:  # zarr raises whatever its JSON or metadata parser does
-        raise PatchStoreError(f"{path / 'zarr.json'}: the store's root metadata cannot be read ({type(exc).__name__}: "
-                              f"{exc}); move the store away (or delete it) and run `admc-pipe dataset` to tile it "
-                              "again from the cached renders") from None
+        raise PatchStoreError(
+            f"{path / 'zarr.json'}: the store's root metadata cannot be read ({type(exc).__name__}: "
+            f"{exc}); move the store away (or delete it) and run `admc-pipe dataset` to tile it "
+            "again from the cached renders"
+        ) from None
     if root.attrs.get("format") != FORMAT:
         raise PatchStoreError(f"{path}: not an {FORMAT} store (format={root.attrs.get('format')!r})")
     version = root.attrs.get("format_version")
@@ -103,8 +110,13 @@ def _open_root(path: Path) -> zarr.Group:
         older = isinstance(version, int) and version < FORMAT_VERSION
         raise PatchStoreError(
             f"{path}: format_version {version!r}, this code reads {FORMAT_VERSION}"
-            + ("; written by an older admc: move it away (or delete it) and run `admc-pipe dataset` to tile "
-               "it again from the cached renders" if older else ""))
+            + (
+                "; written by an older admc: move it away (or delete it) and run `admc-pipe dataset` to tile "
+                "it again from the cached renders"
+                if older
+                else ""
+            )
+        )
     return root
 
 
@@ -128,8 +140,10 @@ def fingerprint(path: str | os.PathLike) -> str:
     patch bytes are edited in place.
     """
     root = _open_root(Path(path))
-    scenes = {split: {scene: root[f"{split}/{scene}"].attrs.get("scene_hash") for scene in list_scenes(path, split)}
-              for split in SPLITS}
+    scenes = {
+        split: {scene: root[f"{split}/{scene}"].attrs.get("scene_hash") for scene in list_scenes(path, split)}
+        for split in SPLITS
+    }
     text = json.dumps({"attrs": dict(root.attrs), "scenes": scenes}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 

@@ -1,4 +1,5 @@
 """Reading the patch store: training rows of a split and branch, and the store's summary."""
+
 from __future__ import annotations
 
 import bisect
@@ -12,9 +13,23 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.common.layout import BASE_QUALITIES, BRANCHES
-from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, NOISE_IMAGES, ROW_IMAGES, SPLITS, STAGING, PatchStoreError, _check_split,
-                                        _damage_error, _jsonable, _lookup, _open_root, _reading, damaged_arrays,
-                                        list_scenes)
+from admc.stores.patches.format import (
+    BASE_IMAGES,
+    CROP_IMAGES,
+    NOISE_IMAGES,
+    ROW_IMAGES,
+    SPLITS,
+    STAGING,
+    PatchStoreError,
+    _check_split,
+    _damage_error,
+    _jsonable,
+    _lookup,
+    _open_root,
+    _reading,
+    damaged_arrays,
+    list_scenes,
+)
 
 
 def stored_quality(description: dict, branch: str) -> str | None:
@@ -37,8 +52,15 @@ class PatchReader:
     model.noise_input generator reads), and every scene must have it.
     """
 
-    def __init__(self, path: str | os.PathLike, split: str, expect_transform: dict | None = None,
-                 branch: str = "diffuse", base: str | None = None, noise: bool = False):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        split: str,
+        expect_transform: dict | None = None,
+        branch: str = "diffuse",
+        base: str | None = None,
+        noise: bool = False,
+    ):
         _check_split(split)
         if branch not in BRANCHES:
             raise PatchStoreError(f"branch {branch!r}: must be one of {BRANCHES}")
@@ -57,7 +79,8 @@ class PatchReader:
                 raise PatchStoreError(
                     f"{self.path}: transform spec differs from the model's in {', '.join(diff)} "
                     f"(e.g. {diff[0]}: store has {_lookup(have, 'transform.' + diff[0])!r}, "
-                    f"model expects {_lookup({'t': want}, 't.' + diff[0])!r})")
+                    f"model expects {_lookup({'t': want}, 't.' + diff[0])!r})"
+                )
         self.scenes: list[str] = []
         self._spp: list[np.ndarray] = []
         self._crop: list[np.ndarray] = []
@@ -75,17 +98,20 @@ class PatchReader:
                 raise PatchStoreError(
                     f"patch store {self.path}: scene {split}/{scene} has no noise maps, which model.noise_input = "
                     "true trains on (it was tiled without them); run `admc-pipe dataset` with this config and "
-                    "--set model.noise_input=true (or tile.noise_maps=true): it re-tiles from the cached renders")
+                    "--set model.noise_input=true (or tile.noise_maps=true): it re-tiles from the cached renders"
+                )
             if base and not has_base:
                 raise PatchStoreError(
                     f"patch store {self.path}: scene {split}/{scene} has no OIDN bases, which model.base {base!r} "
                     "trains on; set tile.oidn_base = true and run `admc-pipe dataset` (it re-tiles from the cached "
-                    "renders)")
+                    "renders)"
+                )
             if base and quality != BASE_QUALITIES[base][branch]:
                 raise PatchStoreError(
                     f"patch store {self.path}: scene {split}/{scene} holds {branch} OIDN bases of quality {quality!r}, "
                     f"model.base {base!r} trains on {BASE_QUALITIES[base][branch]!r} ones; tile with "
-                    f"tile.refiner_base = {base!r} into a store of its own (tile.store)")
+                    f"tile.refiner_base = {base!r} into a store of its own (tile.store)"
+                )
             self.scenes.append(scene)
             for name, out in (("spp", self._spp), ("crop", self._crop)):
                 with _reading(self.path, split, scene, name):
@@ -160,13 +186,22 @@ def store_summary(path: str | os.PathLike) -> dict:
     """
     path = Path(path)
     root = _open_root(path)
-    summary: dict[str, Any] = {"format_version": root.attrs["format_version"], "splits": {},
-                               "sanitization": {}, "staging_leftovers": 0}
+    summary: dict[str, Any] = {
+        "format_version": root.attrs["format_version"],
+        "splits": {},
+        "sanitization": {},
+        "staging_leftovers": 0,
+    }
     staging = path / STAGING
     summary["staging_leftovers"] = sum(1 for p in staging.iterdir() if p.is_dir()) if staging.is_dir() else 0
     for split in SPLITS:
-        entry: dict[str, Any] = {"scenes": [], "rows": {b: 0 for b in BRANCHES}, "crops": 0,
-                                 "rows_per_spp": {}, "ranges": {}}
+        entry: dict[str, Any] = {
+            "scenes": [],
+            "rows": {b: 0 for b in BRANCHES},
+            "crops": 0,
+            "rows_per_spp": {},
+            "ranges": {},
+        }
         for scene in list_scenes(path, split):
             damaged = damaged_arrays(path, split, scene)
             if damaged:

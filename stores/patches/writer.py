@@ -1,4 +1,5 @@
 """Writing the patch store: create it, write (or replace) one scene atomically, discard leftovers."""
+
 from __future__ import annotations
 
 import os
@@ -13,11 +14,30 @@ from zarr.storage import LocalStore
 
 from admc.common.diff import differing_keys
 from admc.stores.atomic import fsync_path
-from admc.stores.patches.format import (BASE_IMAGES, CROP_IMAGES, FORMAT, FORMAT_VERSION, LAYOUT, NOISE_IMAGES,
-                                        REQUIRED_ROOT_ATTRS,
-                                        REQUIRED_SCENE_ATTRS, ROW_IMAGES, SHARD_PATCHES, SPECULAR_ARRAYS, SPLITS,
-                                        STAGING, PatchStoreError, _array_digest, _check_name, _check_split, _jsonable,
-                                        _lookup, _open_root, exists, list_scenes)
+from admc.stores.patches.format import (
+    BASE_IMAGES,
+    CROP_IMAGES,
+    FORMAT,
+    FORMAT_VERSION,
+    LAYOUT,
+    NOISE_IMAGES,
+    REQUIRED_ROOT_ATTRS,
+    REQUIRED_SCENE_ATTRS,
+    ROW_IMAGES,
+    SHARD_PATCHES,
+    SPECULAR_ARRAYS,
+    SPLITS,
+    STAGING,
+    PatchStoreError,
+    _array_digest,
+    _check_name,
+    _check_split,
+    _jsonable,
+    _lookup,
+    _open_root,
+    exists,
+    list_scenes,
+)
 
 
 def _compressor() -> BloscCodec:
@@ -42,11 +62,14 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
     reserved = {"format", "format_version", "layout"} & set(attrs)
     if reserved:
         raise PatchStoreError(f"create_store {path}: attrs may not set reserved keys {sorted(reserved)}")
-    full = _jsonable({**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "layout": LAYOUT},
-                     f"create_store {path}: attrs")
+    full = _jsonable(
+        {**attrs, "format": FORMAT, "format_version": FORMAT_VERSION, "layout": LAYOUT}, f"create_store {path}: attrs"
+    )
     if not exists(path) and (path.is_file() or (path.is_dir() and any(path.iterdir()))):
-        raise PatchStoreError(f"{path}: exists and is not a patch store (no zarr.json); a store is made only in a "
-                              "new or empty folder: choose another tile.store, or move that folder away")
+        raise PatchStoreError(
+            f"{path}: exists and is not a patch store (no zarr.json); a store is made only in a "
+            "new or empty folder: choose another tile.store, or move that folder away"
+        )
     if exists(path):
         existing = dict(_open_root(path).attrs)
         diff = differing_keys(existing, full)
@@ -58,7 +81,8 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
             raise PatchStoreError(
                 f"{path}: existing store differs in {', '.join(diff)} "
                 f"(e.g. {diff[0]}: store has {_lookup(existing, diff[0])!r}, asked {_lookup(full, diff[0])!r}); "
-                "its scenes were tiled with those settings: use another store (tile.store) or move this one away")
+                "its scenes were tiled with those settings: use another store (tile.store) or move this one away"
+            )
         if diff:  # no scene was ever published: nothing pins the old settings
             zarr.open_group(store=LocalStore(path), mode="r+").attrs.put(full)
         return
@@ -102,8 +126,9 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
             a16 = a.astype(np.float16)
         bad = int(a16.size - np.count_nonzero(np.isfinite(a16)))
         if bad:
-            raise PatchStoreError(f"{where}: {name} has {bad} values that are not finite in float16 "
-                                  "(sanitize and to_fp16 before writing)")
+            raise PatchStoreError(
+                f"{where}: {name} has {bad} values that are not finite in float16 (sanitize and to_fp16 before writing)"
+            )
         out[name] = a16
     for name, shape in {"spp": (n,), "crop": (n,), "origin": (m, 2)}.items():
         a = np.asarray(arrays[name])
@@ -111,7 +136,9 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
             raise PatchStoreError(f"{where}: {name} must be an integer array of shape {shape}, got {a.dtype} {a.shape}")
         out[name] = a.astype(np.int32)
     if out["crop"].min() < 0 or out["crop"].max() >= m:
-        raise PatchStoreError(f"{where}: crop indices must lie in [0, {m}), got [{out['crop'].min()}, {out['crop'].max()}]")
+        raise PatchStoreError(
+            f"{where}: crop indices must lie in [0, {m}), got [{out['crop'].min()}, {out['crop'].max()}]"
+        )
     if out["spp"].min() <= 0:
         raise PatchStoreError(f"{where}: spp must be positive, got {out['spp'].min()}")
     return out
@@ -123,18 +150,26 @@ def _write_group(directory: Path, arrays: dict[str, np.ndarray], attrs: dict) ->
         if data.ndim == 4:
             shard = min(len(data), SHARD_PATCHES)
             arr = group.create_array(
-                name, shape=data.shape, dtype="float16", chunks=(1, *data.shape[1:]),
-                shards=(shard, *data.shape[1:]), compressors=_compressor(), fill_value=0,
-                dimension_names=("patch", "channel", "y", "x"))
+                name,
+                shape=data.shape,
+                dtype="float16",
+                chunks=(1, *data.shape[1:]),
+                shards=(shard, *data.shape[1:]),
+                compressors=_compressor(),
+                fill_value=0,
+                dimension_names=("patch", "channel", "y", "x"),
+            )
         else:
-            arr = group.create_array(name, shape=data.shape, dtype="int32", chunks=data.shape,
-                                     compressors=_compressor(), fill_value=0)
+            arr = group.create_array(
+                name, shape=data.shape, dtype="int32", chunks=data.shape, compressors=_compressor(), fill_value=0
+            )
         arr[...] = data
     group.attrs["checksums"] = {name: _array_digest(directory / name) for name in arrays}
 
 
-def write_scene(path: str | os.PathLike, split: str, scene_id: str, arrays: dict[str, np.ndarray],
-                scene_attrs: dict) -> None:
+def write_scene(
+    path: str | os.PathLike, split: str, scene_id: str, arrays: dict[str, np.ndarray], scene_attrs: dict
+) -> None:
     """Write (or replace) one scene's patches; readers see the old scene or the whole new one.
 
     The group is written under `_staging/`, flushed, then renamed into the split. Replacing an
@@ -150,13 +185,19 @@ def write_scene(path: str | os.PathLike, split: str, scene_id: str, arrays: dict
         if key not in scene_attrs:
             raise PatchStoreError(f"{where}: scene_attrs lack required key {key!r}")
     data = _validate_arrays(arrays, root.attrs["patch_size"], where)
-    attrs = _jsonable({
-        **scene_attrs, "scene_id": scene_id, "has_specular": "noisy_specular" in data,
-        "has_base": "base_diffuse" in data,
-        **({"has_noise": True} if "noise_diffuse" in data else {}),  # absent without: attributes as before
-        "n_rows": len(data["spp"]), "n_crops": len(data["origin"]),
-        "spp_levels": sorted({int(s) for s in data["spp"]}),
-    }, f"{where}: scene_attrs")
+    attrs = _jsonable(
+        {
+            **scene_attrs,
+            "scene_id": scene_id,
+            "has_specular": "noisy_specular" in data,
+            "has_base": "base_diffuse" in data,
+            **({"has_noise": True} if "noise_diffuse" in data else {}),  # absent without: attributes as before
+            "n_rows": len(data["spp"]),
+            "n_crops": len(data["origin"]),
+            "spp_levels": sorted({int(s) for s in data["spp"]}),
+        },
+        f"{where}: scene_attrs",
+    )
 
     staging = path / STAGING / f"{split}.{scene_id}.{uuid.uuid4().hex}"
     final = path / split / scene_id

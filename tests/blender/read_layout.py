@@ -1,5 +1,6 @@
 """Run inside Blender: how Blender itself sees an EXR (its type, and the view layer and passes its compositor's
 Image node offers). Prints JSON. Usage: python read_layout.py FILE.exr"""
+
 import json
 import sys
 
@@ -11,5 +12,7 @@ scene = bpy.context.scene
 tree = bpy.data.node_groups.new("probe", "CompositorNodeTree")
 node = tree.nodes.new("CompositorNodeImage")
 node.image = image
-print("LAYOUT " + json.dumps({"type": image.type, "layer": node.layer,
-                             "passes": [o.name for o in node.outputs if o.enabled]}))
+print(
+    "LAYOUT "
+    + json.dumps({"type": image.type, "layer": node.layer, "passes": [o.name for o in node.outputs if o.enabled]})
+)

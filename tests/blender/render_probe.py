@@ -1,6 +1,7 @@
 """Run inside Blender (a Python with bpy): a 32x24 Cycles render of a sphere on a floor, written as
 Blender writes a multilayer EXR with the light and denoising-data passes on. Prints the camera's
 world-to-camera matrix as JSON. Usage: python render_probe.py OUT.exr [--no-light-passes]"""
+
 import json
 import sys
 
@@ -32,8 +33,16 @@ scene.world = bpy.data.worlds.new("World")
 layer = scene.view_layers[0]
 layer.name = "Shot"
 if "--no-light-passes" not in sys.argv:
-    for name in ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct", "glossy_indirect",
-                 "glossy_color", "emit", "environment"):
+    for name in (
+        "diffuse_direct",
+        "diffuse_indirect",
+        "diffuse_color",
+        "glossy_direct",
+        "glossy_indirect",
+        "glossy_color",
+        "emit",
+        "environment",
+    ):
         setattr(layer, f"use_pass_{name}", True)
 layer.use_pass_normal = True  # world space, unlike the Denoising Normal
 layer.cycles.denoising_store_passes = True

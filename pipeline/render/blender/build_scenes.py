@@ -4,12 +4,14 @@
     python build_scenes.py -- JOB.json      JOB: {"out_dir": folder, "scenes": N, "seed": S, "resolution": [w, h]}
 
 Two families, alternating: `interior`, a closed room (textured floor, painted walls, a ceiling area light,
-sometimes a small lamp in view) with furniture and glossy, glass and metal objects; `product`, one object on a curved studio
+sometimes a small lamp in view) with furniture and glossy, glass and metal objects; `product`, one object on a
+curved studio
 backdrop under two or three area lights, in metal, glass, glossy or rough plastic. The same seed writes
 the same scenes. Writes out_dir/<family>-<k>.blend and out_dir/done.json: the files written, and each scene's
 objects (name, location, material colour), which is what the seed decides (the .blend bytes also hold
 pointers and times, which differ from run to run).
 """
+
 import json
 import math
 import random
@@ -44,8 +46,14 @@ def material(name, colour, roughness=0.5, metallic=0.0, transmission=0.0, textur
         bsdf.inputs["Emission Color"].default_value = (*colour, 1.0)
         bsdf.inputs["Emission Strength"].default_value = emission
     if texture:
-        tex = nodes.new({"checker": "ShaderNodeTexChecker", "brick": "ShaderNodeTexBrick",
-                         "noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi"}[texture])
+        tex = nodes.new(
+            {
+                "checker": "ShaderNodeTexChecker",
+                "brick": "ShaderNodeTexBrick",
+                "noise": "ShaderNodeTexNoise",
+                "voronoi": "ShaderNodeTexVoronoi",
+            }[texture]
+        )
         if "Scale" in tex.inputs:
             tex.inputs["Scale"].default_value = rng.uniform(3.0, 12.0)
         ramp = nodes.new("ShaderNodeValToRGB")
@@ -100,25 +108,39 @@ def special(rng, name):
     if kind == "glass":
         return material(name, (0.95, 0.95, 0.95), roughness=rng.choice([0.0, 0.05]), transmission=1.0)
     if kind.endswith("metal"):
-        return material(name, random_colour(rng, 0.5, 0.95), roughness=0.05 if kind == "metal" else 0.35,
-                        metallic=1.0)
+        return material(name, random_colour(rng, 0.5, 0.95), roughness=0.05 if kind == "metal" else 0.35, metallic=1.0)
     return material(name, random_colour(rng), roughness=rng.uniform(0.05, 0.3))
 
 
 def interior(rng, resolution):
     scene = reset(resolution)
     width, depth, height = rng.uniform(4, 6), rng.uniform(4, 6), rng.uniform(2.6, 3.2)
-    floor = material("floor", random_colour(rng, 0.3, 0.8), roughness=rng.uniform(0.2, 0.7),
-                     texture=rng.choice(["checker", "brick", "noise"]), rng=rng)
-    wall = material("wall", random_colour(rng, 0.4, 0.9), roughness=0.8,
-                    texture=rng.choice([None, "noise", "voronoi"]), rng=rng)
+    floor = material(
+        "floor",
+        random_colour(rng, 0.3, 0.8),
+        roughness=rng.uniform(0.2, 0.7),
+        texture=rng.choice(["checker", "brick", "noise"]),
+        rng=rng,
+    )
+    wall = material(
+        "wall", random_colour(rng, 0.4, 0.9), roughness=0.8, texture=rng.choice([None, "noise", "voronoi"]), rng=rng
+    )
     add("plane", (0, 0, 0), (width / 2, depth / 2, 1), floor)
     add("plane", (0, 0, height), (width / 2, depth / 2, 1), wall, rotation=(math.pi, 0, 0))
-    for x, y, rot in ((0, depth / 2, (math.pi / 2, 0, 0)), (0, -depth / 2, (-math.pi / 2, 0, 0)),
-                      (width / 2, 0, (0, -math.pi / 2, 0)), (-width / 2, 0, (0, math.pi / 2, 0))):
+    for x, y, rot in (
+        (0, depth / 2, (math.pi / 2, 0, 0)),
+        (0, -depth / 2, (-math.pi / 2, 0, 0)),
+        (width / 2, 0, (0, -math.pi / 2, 0)),
+        (-width / 2, 0, (0, math.pi / 2, 0)),
+    ):
         add("plane", (x, y, height / 2), (max(width, depth) / 2, max(width, height) / 2, 1), wall, rotation=rot)
-    table = material("table", random_colour(rng, 0.2, 0.6), roughness=rng.uniform(0.1, 0.5),
-                     texture=rng.choice([None, "noise"]), rng=rng)
+    table = material(
+        "table",
+        random_colour(rng, 0.2, 0.6),
+        roughness=rng.uniform(0.1, 0.5),
+        texture=rng.choice([None, "noise"]),
+        rng=rng,
+    )
     tx, ty = rng.uniform(-0.6, 0.6), rng.uniform(0.3, 1.0)
     add("cube", (tx, ty, 0.75), (0.8, 0.5, 0.04), table)
     for dx in (-0.7, 0.7):
@@ -127,16 +149,34 @@ def interior(rng, resolution):
     for k in range(rng.randint(2, 4)):
         shape = rng.choice(["uv_sphere", "torus", "cylinder", "cone", "monkey"])
         size = rng.uniform(0.12, 0.22)
-        add(shape, (tx + rng.uniform(-0.6, 0.6), ty + rng.uniform(-0.3, 0.3), 0.79 + size), (size,) * 3,
-            special(rng, f"object{k}"), rotation=(0, 0, rng.uniform(0, math.tau)))
+        add(
+            shape,
+            (tx + rng.uniform(-0.6, 0.6), ty + rng.uniform(-0.3, 0.3), 0.79 + size),
+            (size,) * 3,
+            special(rng, f"object{k}"),
+            rotation=(0, 0, rng.uniform(0, math.tau)),
+        )
     cabinet_x = rng.uniform(-1.5, 1.5)
-    add("cube", (cabinet_x, depth / 2 - 0.4, 0.45), (rng.uniform(0.4, 0.8), 0.3, 0.45),
-        material("cabinet", random_colour(rng), roughness=rng.uniform(0.3, 0.8)))
-    area_light((0, 0, height - 0.05), (0, 0, 0), rng.uniform(0.6, 1.2), rng.uniform(150, 400),
-               colour=(1.0, rng.uniform(0.85, 1.0), rng.uniform(0.7, 0.95)))
+    add(
+        "cube",
+        (cabinet_x, depth / 2 - 0.4, 0.45),
+        (rng.uniform(0.4, 0.8), 0.3, 0.45),
+        material("cabinet", random_colour(rng), roughness=rng.uniform(0.3, 0.8)),
+    )
+    area_light(
+        (0, 0, height - 0.05),
+        (0, 0, 0),
+        rng.uniform(0.6, 1.2),
+        rng.uniform(150, 400),
+        colour=(1.0, rng.uniform(0.85, 1.0), rng.uniform(0.7, 0.95)),
+    )
     if rng.random() < 0.5:  # a lamp seen directly: a small, bright emitter
-        add("uv_sphere", (cabinet_x + rng.uniform(-0.2, 0.2), depth / 2 - 0.4, 1.02), (0.12,) * 3,
-            material("lamp", (1.0, 0.85, 0.6), emission=rng.uniform(5.0, 15.0)))
+        add(
+            "uv_sphere",
+            (cabinet_x + rng.uniform(-0.2, 0.2), depth / 2 - 0.4, 1.02),
+            (0.12,) * 3,
+            material("lamp", (1.0, 0.85, 0.6), emission=rng.uniform(5.0, 15.0)),
+        )
     scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.06, 0.08, 1)
     camera((rng.uniform(-1.2, 1.2), -depth / 2 + 0.4, rng.uniform(1.3, 1.8)), (tx, ty, 0.8), rng.uniform(20, 28))
     return scene
@@ -152,12 +192,20 @@ def product(rng, resolution):
     size = rng.uniform(0.45, 0.7)
     add(shape, (0, 0, size), (size,) * 3, special(rng, "product"), rotation=(0, 0, rng.uniform(-0.8, 0.8)))
     if rng.random() < 0.6:
-        add("cube", (rng.uniform(0.8, 1.3), rng.uniform(-0.4, 0.4), 0.2), (0.2,) * 3,
-            material("prop", random_colour(rng), roughness=0.6, texture="checker", rng=rng))
+        add(
+            "cube",
+            (rng.uniform(0.8, 1.3), rng.uniform(-0.4, 0.4), 0.2),
+            (0.2,) * 3,
+            material("prop", random_colour(rng), roughness=0.6, texture="checker", rng=rng),
+        )
     for k in range(rng.randint(2, 3)):
         angle = rng.uniform(-2.2, 2.2)
-        area_light((3.5 * math.sin(angle), -3.5 * math.cos(angle), rng.uniform(1.5, 4.0)), (0, 0, size),
-                   rng.uniform(0.5, 2.0), rng.uniform(60, 250))
+        area_light(
+            (3.5 * math.sin(angle), -3.5 * math.cos(angle), rng.uniform(1.5, 4.0)),
+            (0, 0, size),
+            rng.uniform(0.5, 2.0),
+            rng.uniform(60, 250),
+        )
     scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.02, 0.02, 0.02, 1)
     camera((rng.uniform(-1.0, 1.0), -4.5, rng.uniform(0.8, 1.8)), (0, 0, size * 0.8), rng.uniform(40, 70))
     return scene
@@ -187,8 +235,10 @@ def describe(scene):
     for obj in sorted(scene.objects, key=lambda o: o.name):
         colour = None
         if obj.type == "MESH" and obj.data.materials:
-            colour = [round(v, 4) for v in obj.data.materials[0].node_tree.nodes["Principled BSDF"]
-                      .inputs["Base Color"].default_value]
+            colour = [
+                round(v, 4)
+                for v in obj.data.materials[0].node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value
+            ]
         rows.append([obj.name, [round(v * 1000) for v in obj.location], colour])
     return rows
 

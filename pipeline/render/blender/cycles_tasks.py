@@ -7,6 +7,7 @@ A task runs Blender once (`worker.py` in its own process, see `locate.py`): it o
 (`passes.py`) and writes the admc EXR. A killed task leaves only its temporary folder behind, so a rerun
 renders what is missing and nothing else, like a Mitsuba render.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,7 +35,7 @@ from .locate import SETUP_HINT, BlenderMissing, require_blender
 
 BLEND_FAMILY = "blend"
 WORKER = Path(__file__).with_name("worker.py")
-EXR_NAME = "render.exr"          # as pipeline/render/tasks.py names them: tiling and linking read these
+EXR_NAME = "render.exr"  # as pipeline/render/tasks.py names them: tiling and linking read these
 SIDECAR_NAME = "render.json"
 BLEND_CODE = code_version(package, buffers, camera, exr, exr_parts)
 BLENDER_TIMEOUT_S = 24 * 3600
@@ -121,8 +122,13 @@ def run_worker(job: dict, folder: Path, blender: str, what: str) -> dict:
     command = require_blender(blender, what)
     job_path = folder / "job.json"
     job_path.write_text(json.dumps(job))
-    out = subprocess.run([*command, str(WORKER), "--", str(job_path)], capture_output=True, text=True,
-                         timeout=BLENDER_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    out = subprocess.run(
+        [*command, str(WORKER), "--", str(job_path)],
+        capture_output=True,
+        text=True,
+        timeout=BLENDER_TIMEOUT_S,
+        stdin=subprocess.DEVNULL,
+    )
     done = folder / "done.json"
     if "No module named 'bpy'" in out.stderr:
         raise BlenderMissing(f"{what}: {command[0]} cannot import bpy; {SETUP_HINT}")
@@ -135,8 +141,18 @@ def run_worker(job: dict, folder: Path, blender: str, what: str) -> dict:
     return report
 
 
-def render_blend(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: int, reference: bool,
-                 subrenders: int, blender: str, threads: int) -> dict:
+def render_blend(
+    out_dir: Path,
+    inputs: dict,
+    *,
+    scene: dict,
+    spp: int,
+    seed: int,
+    reference: bool,
+    subrenders: int,
+    blender: str,
+    threads: int,
+) -> dict:
     """Task body: render one (.blend, spp) with Cycles into out_dir/render.exr + render.json."""
     from admc.pipeline.render.tasks import _half_safe  # the Mitsuba path's rule for half EXRs
 
@@ -147,8 +163,13 @@ def render_blend(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: in
     folder = Path(out_dir) / "_subrenders"
     folder.mkdir()
     start = time.perf_counter()
-    job = {"blend": spec.blend_path, "resolution": list(spec.resolution), "subrenders": plan,
-           "out_dir": str(folder), "threads": threads}
+    job = {
+        "blend": spec.blend_path,
+        "resolution": list(spec.resolution),
+        "subrenders": plan,
+        "out_dir": str(folder),
+        "threads": threads,
+    }
     report = run_worker(job, folder, blender, spec.blend_path)
     wall = time.perf_counter() - start
     parts, seconds = [], 0.0
@@ -165,20 +186,37 @@ def render_blend(out_dir: Path, inputs: dict, *, scene: dict, spp: int, seed: in
     clamped = 0
     if not reference:
         layers, clamped = _half_safe(layers)
-    exr.write_exr(Path(out_dir) / EXR_NAME, layers, precision="float" if reference else "half",
-                  attributes={"admc_scene": spec.scene_id, "admc_spp": str(spp)})
+    exr.write_exr(
+        Path(out_dir) / EXR_NAME,
+        layers,
+        precision="float" if reference else "half",
+        attributes={"admc_scene": spec.scene_id, "admc_spp": str(spp)},
+    )
     if seconds <= 0:  # Blender's header counts in 10 ms steps: a tiny render reads 0; take the render calls' wall time
         seconds = sum(report["seconds"])
     seconds = max(seconds, 1e-6)
     sidecar = {
-        "scene_id": spec.scene_id, "family": spec.family, "scene_hash": blend_hash(spec), "spp": spp,
-        "reference": reference, "seed": seed, "variant": f"cycles-cpu (Blender {report['blender']})",
-        "resolution": list(spec.resolution), "render_seconds": round(seconds, 4),
+        "scene_id": spec.scene_id,
+        "family": spec.family,
+        "scene_hash": blend_hash(spec),
+        "spp": spp,
+        "reference": reference,
+        "seed": seed,
+        "variant": f"cycles-cpu (Blender {report['blender']})",
+        "resolution": list(spec.resolution),
+        "render_seconds": round(seconds, 4),
         "warmup_seconds": round(max(wall - seconds, 0.0), 4),
         "samples_per_second": spp * spec.resolution[0] * spec.resolution[1] / seconds,
-        "constructs": [], "has_specular": True, "bsdf_types": [], "layers": sorted(layers), "nonfinite": nonfinite,
-        "fp16_clamped": clamped, "blend_file": spec.blend_path, "subrenders": [list(p) for p in plan],
-        "camera": report["camera"], "world_to_camera": report["world_to_camera"],
+        "constructs": [],
+        "has_specular": True,
+        "bsdf_types": [],
+        "layers": sorted(layers),
+        "nonfinite": nonfinite,
+        "fp16_clamped": clamped,
+        "blend_file": spec.blend_path,
+        "subrenders": [list(p) for p in plan],
+        "camera": report["camera"],
+        "world_to_camera": report["world_to_camera"],
     }
     (Path(out_dir) / SIDECAR_NAME).write_text(json.dumps(sidecar, indent=2))
     return sidecar
@@ -195,13 +233,25 @@ def blend_render_tasks(cfg, specs: list[BlendSpec]) -> dict[str, dict[str, Task]
         levels.append(("reference", cfg.render.reference_spp, True))
         tasks[spec.scene_id] = {}
         for name, spp, reference in levels:
-            params = {"scene": dataclasses.asdict(spec), "scene_hash": content, "spp": spp, "reference": reference,
-                      "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
-                      "subrenders": cfg.render.cycles_subrenders, "blender": cfg.render.blender,
-                      "threads": cfg.render.blender_threads}
+            params = {
+                "scene": dataclasses.asdict(spec),
+                "scene_hash": content,
+                "spp": spp,
+                "reference": reference,
+                "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
+                "subrenders": cfg.render.cycles_subrenders,
+                "blender": cfg.render.blender,
+                "threads": cfg.render.blender_threads,
+            }
             label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp (Cycles)"
-            tasks[spec.scene_id][name] = Task(stage="render", label=label, fn=_blend_task, params=params,
-                                              code_version=BLEND_CODE, source=spec.blend_path)
+            tasks[spec.scene_id][name] = Task(
+                stage="render",
+                label=label,
+                fn=_blend_task,
+                params=params,
+                code_version=BLEND_CODE,
+                source=spec.blend_path,
+            )
     return tasks
 
 

@@ -3,6 +3,7 @@
 In order: the setting `render.blender` (a path), the environment variable ADMC_BLENDER, the
 `.venv-blender` that `scripts/setup.sh` creates beside admc's checkout, `blender` on the PATH.
 """
+
 from __future__ import annotations
 
 import functools
@@ -14,9 +15,11 @@ from pathlib import Path
 import admc
 from admc.errors import AdmcError
 
-SETUP_HINT = ("install it with `bash scripts/setup.sh --blender` (bpy 5.0.1 in .venv-blender: bpy pins NumPy < 2, so "
-              "it cannot share admc's environment), or set render.blender (or ADMC_BLENDER) to a Blender executable "
-              "or a Python that imports bpy")
+SETUP_HINT = (
+    "install it with `bash scripts/setup.sh --blender` (bpy 5.0.1 in .venv-blender: bpy pins NumPy < 2, so "
+    "it cannot share admc's environment), or set render.blender (or ADMC_BLENDER) to a Blender executable "
+    "or a Python that imports bpy"
+)
 CHECKOUT_VENV = Path(admc.__file__).resolve().parents[1] / ".venv-blender" / "bin" / "python"
 
 
@@ -46,11 +49,13 @@ def require_blender(configured: str, what: str) -> list[str]:
     """The Blender command, or one message naming `what` needs it and how to get it."""
     command = blender_command(configured)
     if command is None:
-        raise BlenderMissing(f"{what}: rendering .blend scenes needs Blender (bpy), which is not installed; "
-                             f"{SETUP_HINT}")
+        raise BlenderMissing(
+            f"{what}: rendering .blend scenes needs Blender (bpy), which is not installed; {SETUP_HINT}"
+        )
     if len(command) == 1 and not _has_bpy(command[0]):
-        raise BlenderMissing(f"{what}: rendering .blend scenes needs Blender (bpy), and {command[0]} cannot import "
-                             f"bpy; {SETUP_HINT}")
+        raise BlenderMissing(
+            f"{what}: rendering .blend scenes needs Blender (bpy), and {command[0]} cannot import bpy; {SETUP_HINT}"
+        )
     return command
 
 

@@ -5,11 +5,13 @@ Diffuse Color; specular = Combined - diffuse (glossy, transmission, emission and
 albedo = Denoising Albedo, clipped to 1 (Cycles gives a lamp seen directly its emission there; admc's
 renders give emitters albedo 1); normal = Denoising Normal, which Cycles writes in its camera space (x right, y
 up, z forward) and admc's frame turns z around; depth = Denoising Depth (0 where the camera ray hit
-nothing); coverage 0 where the environment is seen directly (`coverage`), averaged over the sub-renders. Cycles gives no per-pixel variance, so the render is made of
+nothing); coverage 0 where the environment is seen directly (`coverage`), averaged over the
+sub-renders. Cycles gives no per-pixel variance, so the render is made of
 several independent sub-renders (seeds of their own) and each branch's variance of the pixel mean comes
 from their spread: with K sub-renders of s_k samples (S in all) and means m_k, the per-sample variance is
 sum s_k (m_k - m)^2 / (K - 1), and the variance of the mean that divided by S.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -42,10 +44,12 @@ def read_subrender(path: Path, view_layer: str) -> tuple[dict[str, np.ndarray], 
     diffuse = (rgb(LIGHT["direct"]) + rgb(LIGHT["indirect"])) * rgb(LIGHT["colour"])
     depth = rgb(FEATURES["depth"], "Z")
     buffers = {
-        "diffuse": diffuse, "specular": np.maximum(combined - diffuse, 0.0),
+        "diffuse": diffuse,
+        "specular": np.maximum(combined - diffuse, 0.0),
         "albedo": np.clip(rgb(FEATURES["albedo"]), 0.0, 1.0),
         "normal": to_admc_camera(rgb(FEATURES["normal"], "XYZ"), "cycles"),
-        "depth": depth, "coverage": coverage(depth, combined, rgb("Environment")),
+        "depth": depth,
+        "coverage": coverage(depth, combined, rgb("Environment")),
     }
     return buffers, _seconds(header.get(f"cycles.{view_layer}.render_time", "0"))
 

@@ -16,15 +16,26 @@ written as rendered), and the light and denoising-data passes on in the one view
 scene's own light paths (bounces, caustics), camera, materials and world are kept: the point is to
 train on the user's renderer as they set it up.
 """
+
 import json
 import sys
 import time
 
 import bpy
 
-PASSES = ("diffuse_direct", "diffuse_indirect", "diffuse_color", "glossy_direct", "glossy_indirect",
-          "glossy_color", "transmission_direct", "transmission_indirect", "transmission_color", "emit",
-          "environment")
+PASSES = (
+    "diffuse_direct",
+    "diffuse_indirect",
+    "diffuse_color",
+    "glossy_direct",
+    "glossy_indirect",
+    "glossy_color",
+    "transmission_direct",
+    "transmission_indirect",
+    "transmission_color",
+    "emit",
+    "environment",
+)
 
 
 class JobError(Exception):
@@ -72,8 +83,11 @@ def configure(scene, resolution, threads: int):
 
 def camera_info(scene):
     camera = scene.camera
-    return {"camera": camera.name, "world_to_camera": [v for row in camera.matrix_world.inverted() for v in row],
-            "resolution": [scene.render.resolution_x, scene.render.resolution_y]}
+    return {
+        "camera": camera.name,
+        "world_to_camera": [v for row in camera.matrix_world.inverted() for v in row],
+        "resolution": [scene.render.resolution_x, scene.render.resolution_y],
+    }
 
 
 def main(job_path: str) -> None:
@@ -98,8 +112,13 @@ def main(job_path: str) -> None:
             start = time.perf_counter()
             bpy.ops.render.render(write_still=True)
             seconds.append(time.perf_counter() - start)
-        report = {"ok": True, "view_layer": view_layer, "seconds": seconds, "blender": bpy.app.version_string,
-                  **camera_info(scene)}
+        report = {
+            "ok": True,
+            "view_layer": view_layer,
+            "seconds": seconds,
+            "blender": bpy.app.version_string,
+            **camera_info(scene),
+        }
     except JobError as exc:
         report = {"ok": False, "error": str(exc)}
     finally:
@@ -113,8 +132,10 @@ def own_resolution(path: str) -> list[int]:
     except RuntimeError as exc:
         raise JobError(f"{path}: Blender cannot open it ({str(exc).strip().splitlines()[-1]})") from None
     render = bpy.context.scene.render
-    return [max(1, render.resolution_x * render.resolution_percentage // 100),
-            max(1, render.resolution_y * render.resolution_percentage // 100)]
+    return [
+        max(1, render.resolution_x * render.resolution_percentage // 100),
+        max(1, render.resolution_y * render.resolution_percentage // 100),
+    ]
 
 
 if __name__ == "__main__":

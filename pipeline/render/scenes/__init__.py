@@ -5,6 +5,7 @@ Everything is derived from a small picklable `SceneSpec`, so render tasks can ru
 process: `load_scene(spec)` builds the Mitsuba scene, `scene_hash(spec)` keys caches, and
 `analyse(scene)` says whether a specular buffer is needed.
 """
+
 from .analysis import SceneNeeds, analyse
 from .constructs import CONSTRUCTS
 from .families import FAMILIES, procedural_corpus

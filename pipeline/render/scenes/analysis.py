@@ -4,6 +4,7 @@ A scene whose BSDFs have no glossy or delta lobe has nothing in the specular buf
 pipeline skips rendering, storing, training and denoising it. Wrappers (twosided, blendbsdf,
 mask) report the union of their children's lobes in `flags()`, so the top-level flags suffice.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -10,6 +10,7 @@ family's scene as before.
 The held-out family's constructs live in `ood.py` (`OOD_CONSTRUCTS`), never here, and `load_config`
 refuses them in `corpus.constructs`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -84,12 +85,22 @@ def _textured_light(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     cover = np.rad2deg(2.0 * np.arctan(rng.uniform(1.2, 2.5) * aim.radius / distance))  # the beam's full angle
     power = irradiance(rng, aim) * distance**2  # irradiance at 1 m (projector) or intensity (spot)
     if rng.uniform() < 0.5:
-        scene["projector"] = {"type": "projector", "to_world": _aim(position, aim.target), "irradiance": texture,
-                              "scale": power, "fov": float(min(cover, 60.0))}
+        scene["projector"] = {
+            "type": "projector",
+            "to_world": _aim(position, aim.target),
+            "irradiance": texture,
+            "scale": power,
+            "fov": float(min(cover, 60.0)),
+        }
     else:
-        scene["spot"] = {"type": "spot", "to_world": _aim(position, aim.target), "texture": texture,
-                         "intensity": rgb([power] * 3), "cutoff_angle": float(min(cover, 60.0)),
-                         "beam_width": float(min(cover, 60.0) * rng.uniform(0.6, 0.95))}
+        scene["spot"] = {
+            "type": "spot",
+            "to_world": _aim(position, aim.target),
+            "texture": texture,
+            "intensity": rgb([power] * 3),
+            "cutoff_angle": float(min(cover, 60.0)),
+            "beam_width": float(min(cover, 60.0) * rng.uniform(0.6, 0.95)),
+        }
 
 
 def _occluded_light(rng: np.random.Generator, scene: dict, aim: Aim, opacity: np.ndarray, name: str) -> None:
@@ -97,18 +108,35 @@ def _occluded_light(rng: np.random.Generator, scene: dict, aim: Aim, opacity: np
     position, distance = _light_position(rng, aim)
     power = irradiance(rng, aim) * distance**2
     if rng.uniform() < 0.7:
-        scene[f"{name}_light"] = {"type": "point", "position": position.tolist(), "intensity": rgb(warm_white(rng) * power)}
+        scene[f"{name}_light"] = {
+            "type": "point",
+            "position": position.tolist(),
+            "intensity": rgb(warm_white(rng) * power),
+        }
     else:
         radius = rng.uniform(0.005, 0.02)
-        scene[f"{name}_light"] = {"type": "sphere", "center": position.tolist(), "radius": radius,
-                                  "emitter": {"type": "area", "radiance": rgb(warm_white(rng) * power / (np.pi * radius**2))}}
+        scene[f"{name}_light"] = {
+            "type": "sphere",
+            "center": position.tolist(),
+            "radius": radius,
+            "emitter": {"type": "area", "radiance": rgb(warm_white(rng) * power / (np.pi * radius**2))},
+        }
     along = rng.uniform(0.25, 0.6)  # where the card sits between the light and the target
     centre = position + (aim.target - position) * along
     half = rng.uniform(1.3, 2.0) * aim.radius * along
-    card_bsdf = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": rgb(random_colour(rng, value=(0.05, 0.4)))}}
-    scene[name] = {"type": "rectangle", "to_world": planar(centre, position - centre, direction_above(rng, -1.0, 1.0), half, half),
-                   "bsdf": {"type": "mask", "opacity": {"type": "bitmap", "bitmap": Image(1.0 - opacity), "filter_type": "nearest"},
-                            "bsdf": card_bsdf}}
+    card_bsdf = {
+        "type": "twosided",
+        "bsdf": {"type": "diffuse", "reflectance": rgb(random_colour(rng, value=(0.05, 0.4)))},
+    }
+    scene[name] = {
+        "type": "rectangle",
+        "to_world": planar(centre, position - centre, direction_above(rng, -1.0, 1.0), half, half),
+        "bsdf": {
+            "type": "mask",
+            "opacity": {"type": "bitmap", "bitmap": Image(1.0 - opacity), "filter_type": "nearest"},
+            "bsdf": card_bsdf,
+        },
+    }
 
 
 def _grate(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
@@ -171,8 +199,15 @@ def bump_shape(rng: np.random.Generator, scene: dict, key: str) -> None:
         rewrite_bsdf(scene, key, lambda inner: {"type": "bumpmap", "arg": texture, "scale": amount, "bsdf": inner})
     else:
         normals = Image(masks.normal_map(height, rng.uniform(0.01, 0.05)))
-        rewrite_bsdf(scene, key, lambda inner: {"type": "normalmap", "bsdf": inner,
-                                                 "normalmap": {"type": "bitmap", "bitmap": normals, "raw": True}})
+        rewrite_bsdf(
+            scene,
+            key,
+            lambda inner: {
+                "type": "normalmap",
+                "bsdf": inner,
+                "normalmap": {"type": "bitmap", "bitmap": normals, "raw": True},
+            },
+        )
 
 
 def _bump(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
@@ -185,9 +220,15 @@ def textured_roughness(rng: np.random.Generator) -> dict:
     highlight that is sharp in places and blurred in others."""
     low, high = rng.uniform(0.01, 0.08), rng.uniform(0.2, 0.6)
     roughness = low + (high - low) * masks.random_height(rng)
-    return {"type": "twosided", "bsdf": {
-        "type": "roughconductor", "distribution": "ggx", "material": ("Ag", "Al", "Au", "Cu", "Cr")[int(rng.integers(5))],
-        "alpha": {"type": "bitmap", "bitmap": Image(roughness), "filter_type": "bilinear"}}}
+    return {
+        "type": "twosided",
+        "bsdf": {
+            "type": "roughconductor",
+            "distribution": "ggx",
+            "material": ("Ag", "Al", "Au", "Cu", "Cr")[int(rng.integers(5))],
+            "alpha": {"type": "bitmap", "bitmap": Image(roughness), "filter_type": "bilinear"},
+        },
+    }
 
 
 def _rough_texture(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
@@ -199,8 +240,12 @@ def _thin_lens(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     """Depth of field: the camera becomes a thin lens focused near the target, some things blurred."""
     sensor = scene["sensor"]
     distance = float(np.linalg.norm(aim.target - np.asarray(aim.eye)))
-    scene["sensor"] = dict(sensor, type="thinlens", focus_distance=distance * rng.uniform(0.6, 1.3),
-                           aperture_radius=distance * rng.uniform(0.015, 0.06))
+    scene["sensor"] = dict(
+        sensor,
+        type="thinlens",
+        focus_distance=distance * rng.uniform(0.6, 1.3),
+        aperture_radius=distance * rng.uniform(0.015, 0.06),
+    )
 
 
 def base_height(aim: Aim, size: float) -> float:
@@ -222,14 +267,22 @@ def _mirrors(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
             bsdf = {"type": "conductor", "material": "none", "specular_reflectance": rgb([rng.uniform(0.85, 0.97)] * 3)}
         else:
             bsdf = {"type": "dielectric", "int_ior": rng.uniform(1.4, 1.6), "ext_ior": 1.0}
-        scene[f"optic_{index}"] = {"type": "sphere", "center": [x, base_height(aim, size) + size, z], "radius": size, "bsdf": bsdf}
+        scene[f"optic_{index}"] = {
+            "type": "sphere",
+            "center": [x, base_height(aim, size) + size, z],
+            "radius": size,
+            "bsdf": bsdf,
+        }
     if rng.uniform() < 0.5:
         x, z = around_target(rng, aim)
         half = rng.uniform(0.3, 0.6) * aim.radius
         centre = [x, base_height(aim, half) + half, z]
         facing = np.asarray(aim.eye) - centre + rng.normal(0.0, 0.5, 3)
-        scene["optic_panel"] = {"type": "rectangle", "to_world": planar(centre, facing * [1, 0, 1], UP, half, half),
-                                "bsdf": {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}}}
+        scene["optic_panel"] = {
+            "type": "rectangle",
+            "to_world": planar(centre, facing * [1, 0, 1], UP, half, half),
+            "bsdf": {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}},
+        }
 
 
 def _caustic(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
@@ -238,33 +291,72 @@ def _caustic(rng: np.random.Generator, scene: dict, aim: Aim) -> None:
     size = rng.uniform(0.2, 0.35) * aim.radius
     x, z = around_target(rng, aim)
     centre = np.array([x, base_height(aim, size) + size * rng.uniform(2.0, 3.5), z])
-    scene["caustic_glass"] = {"type": "sphere", "center": centre.tolist(), "radius": size,
-                              "bsdf": {"type": "dielectric", "int_ior": rng.uniform(1.45, 1.7), "ext_ior": 1.0}}
+    scene["caustic_glass"] = {
+        "type": "sphere",
+        "center": centre.tolist(),
+        "radius": size,
+        "bsdf": {"type": "dielectric", "int_ior": rng.uniform(1.45, 1.7), "ext_ior": 1.0},
+    }
     away = centre - np.asarray(aim.eye)
     away = away[[0, 2]] / np.linalg.norm(away[[0, 2]])
     tilt, height = rng.uniform(0.2, 0.6), rng.uniform(0.5, 1.5)
     position = centre + height * np.array([np.sin(tilt) * away[0], np.cos(tilt), np.sin(tilt) * away[1]])
     radius = rng.uniform(0.02, 0.05)  # small enough for a sharp caustic, large enough for a reference to converge
     power = irradiance(rng, aim) * (position[1] - base_height(aim, size)) ** 2
-    scene["caustic_light"] = {"type": "sphere", "center": position.tolist(), "radius": radius,
-                              "emitter": {"type": "area", "radiance": rgb(warm_white(rng) * power / (np.pi * radius**2))}}
+    scene["caustic_light"] = {
+        "type": "sphere",
+        "center": position.tolist(),
+        "radius": radius,
+        "emitter": {"type": "area", "radiance": rgb(warm_white(rng) * power / (np.pi * radius**2))},
+    }
 
 
-CONSTRUCTS: dict[str, Construct] = {c.name: c for c in (
-    Construct("projector", "light", _textured_light, "a projector or spot light with a slide (bars, grid, dots, leaves, spokes)"),
-    Construct("grate", "occluder", _grate, "a small light behind a card with bars or holes (mask BSDF): hard striped shadows"),
-    Construct("foliage", "occluder", _foliage, "a small light behind a leaf-like alpha-masked card: dappled hard shadows"),
-    Construct("hdr_sky", "environment", _hdr_environment, "a procedural HDR sky: hard sun, skyline, bright hard-edged panels"),
-    Construct("bump", "material", _bump, "bump or normal maps (tiles, ripples, noise) on one to three surfaces"),
-    Construct("rough_texture", "material", _rough_texture, "rough metal with textured roughness on one or two surfaces"),
-    Construct("thinlens", "camera", _thin_lens, "a thin-lens camera focused near the target: depth of field"),
-    Construct("mirrors", "optics", _mirrors, "mirror and glass spheres and a mirror panel that see the environment"),
-    Construct("caustic", "optics", _caustic, "a glass ball over the floor under a small bright light: a focused caustic",
-              needs_support=True),
-)}
+CONSTRUCTS: dict[str, Construct] = {
+    c.name: c
+    for c in (
+        Construct(
+            "projector",
+            "light",
+            _textured_light,
+            "a projector or spot light with a slide (bars, grid, dots, leaves, spokes)",
+        ),
+        Construct(
+            "grate",
+            "occluder",
+            _grate,
+            "a small light behind a card with bars or holes (mask BSDF): hard striped shadows",
+        ),
+        Construct(
+            "foliage", "occluder", _foliage, "a small light behind a leaf-like alpha-masked card: dappled hard shadows"
+        ),
+        Construct(
+            "hdr_sky",
+            "environment",
+            _hdr_environment,
+            "a procedural HDR sky: hard sun, skyline, bright hard-edged panels",
+        ),
+        Construct("bump", "material", _bump, "bump or normal maps (tiles, ripples, noise) on one to three surfaces"),
+        Construct(
+            "rough_texture", "material", _rough_texture, "rough metal with textured roughness on one or two surfaces"
+        ),
+        Construct("thinlens", "camera", _thin_lens, "a thin-lens camera focused near the target: depth of field"),
+        Construct(
+            "mirrors", "optics", _mirrors, "mirror and glass spheres and a mirror panel that see the environment"
+        ),
+        Construct(
+            "caustic",
+            "optics",
+            _caustic,
+            "a glass ball over the floor under a small bright light: a focused caustic",
+            needs_support=True,
+        ),
+    )
+}
 
 
-def choose_constructs(family: str, seed: int, names: tuple[str, ...], chance: float, supported: bool) -> tuple[str, ...]:
+def choose_constructs(
+    family: str, seed: int, names: tuple[str, ...], chance: float, supported: bool
+) -> tuple[str, ...]:
     """The constructs mixed into one scene: with probability `chance`, one or two of `names` (those
     needing a support only where the family has one), drawn from a stream of its own."""
     pool = [name for name in names if supported or not CONSTRUCTS[name].needs_support]

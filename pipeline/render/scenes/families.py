@@ -5,6 +5,7 @@ constructs (`constructs.py`) are mixed in on top of the family's own draws. Radi
 a 16-spp `path` render has a mean luminance around 0.1-0.6 before the per-scene exposure factor
 (2^-2..2^2) is applied.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,10 +30,16 @@ class Family:
 
 FAMILIES: dict[str, Family] = {
     "room": Family("room", room, "indoor room, furniture, textured/glossy/glass materials, area/point/sky light", True),
-    "tabletop": Family("tabletop", tabletop, "objects on a ground plane under a sky, close view, mostly specular", True),
+    "tabletop": Family(
+        "tabletop", tabletop, "objects on a ground plane under a sky, close view, mostly specular", True
+    ),
     "studio": Family("studio", studio, "objects floating in a black void under small emitters, or before a sky", False),
-    "preview": Family("preview", preview, "one object on a textured floor under an (HDR) environment map, close view", True),
-    "ood": Family("ood", ood, "held out of training: a closed box or plinths with constructs no training family has", True),
+    "preview": Family(
+        "preview", preview, "one object on a textured floor under an (HDR) environment map, close view", True
+    ),
+    "ood": Family(
+        "ood", ood, "held out of training: a closed box or plinths with constructs no training family has", True
+    ),
 }
 
 
@@ -41,8 +48,14 @@ def scene_id(family: str, seed: int, constructs: tuple[str, ...] = ()) -> str:
     return f"{family}-{seed:04d}" + "".join(f"+{name}" for name in constructs)
 
 
-def procedural_corpus(families: list[str], n_scenes: int, seed: int, resolution: tuple[int, int],
-                      constructs: tuple[str, ...] = (), construct_chance: float = 0.0) -> list[SceneSpec]:
+def procedural_corpus(
+    families: list[str],
+    n_scenes: int,
+    seed: int,
+    resolution: tuple[int, int],
+    constructs: tuple[str, ...] = (),
+    construct_chance: float = 0.0,
+) -> list[SceneSpec]:
     """`n_scenes` specs cycling through `families`; the k-th scene of a family gets seed
     seed * SEEDS_PER_CORPUS + k, so corpora with different seeds never share a scene. Each scene gets
     one or two of `constructs` with probability `construct_chance` (a draw of its own per scene)."""
@@ -61,5 +74,7 @@ def procedural_corpus(families: list[str], n_scenes: int, seed: int, resolution:
         family = families[index % len(families)]
         scene_seed = seed * SEEDS_PER_CORPUS + index // len(families)
         mixed = choose_constructs(family, scene_seed, tuple(constructs), construct_chance, FAMILIES[family].has_support)
-        specs.append(SceneSpec(scene_id(family, scene_seed, mixed), family, scene_seed, tuple(resolution), constructs=mixed))
+        specs.append(
+            SceneSpec(scene_id(family, scene_seed, mixed), family, scene_seed, tuple(resolution), constructs=mixed)
+        )
     return specs

@@ -3,6 +3,7 @@
 Conventions follow Mitsuba: +Y is up; `rectangle` and `disk` lie in local XY facing +Z;
 `cube` spans [-1, 1]^3; `look_at` puts the camera's viewing direction on local +Z.
 """
+
 from __future__ import annotations
 
 import numpy as np

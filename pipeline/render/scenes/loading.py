@@ -3,6 +3,7 @@
 Procedural specs go through their family's plain description (`plain.py`), which is turned
 into Mitsuba objects only here, once a variant is active. XML specs go through `xml_loader`.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -23,10 +24,14 @@ def plain_description(spec: SceneSpec) -> dict:
         raise SceneError(f"scene {spec.scene_id!r} is an XML scene ({spec.xml_path}); it has no procedural description")
     family = FAMILIES.get(spec.family)
     if family is None:
-        raise SceneError(f"scene {spec.scene_id!r}: unknown family {spec.family!r}; known: {', '.join(sorted(FAMILIES))}")
+        raise SceneError(
+            f"scene {spec.scene_id!r}: unknown family {spec.family!r}; known: {', '.join(sorted(FAMILIES))}"
+        )
     unknown = [name for name in spec.constructs if name not in CONSTRUCTS]
     if unknown:
-        raise SceneError(f"scene {spec.scene_id!r}: unknown constructs {unknown}; known: {', '.join(sorted(CONSTRUCTS))}")
+        raise SceneError(
+            f"scene {spec.scene_id!r}: unknown constructs {unknown}; known: {', '.join(sorted(CONSTRUCTS))}"
+        )
     return canonicalise(family.build(spec.seed, spec.resolution, spec.constructs))
 
 
@@ -52,7 +57,9 @@ def _mesh(shape: MeshShape, name: str):
     data = shape.mesh
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(_to_mitsuba(shape.bsdf))
-    mesh = mi.Mesh(name, len(data.vertices), len(data.faces), props=props, has_vertex_normals=True, has_vertex_texcoords=True)
+    mesh = mi.Mesh(
+        name, len(data.vertices), len(data.faces), props=props, has_vertex_normals=True, has_vertex_texcoords=True
+    )
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(data.vertices.ravel())
     params["faces"] = mi.UInt32(data.faces.ravel())
@@ -81,7 +88,9 @@ def load_scene(spec: SceneSpec, spp: int = 1):
     try:
         return load_description(plain_description(spec))
     except RuntimeError as error:
-        raise SceneError(f"scene {spec.scene_id!r} ({spec.family}, seed {spec.seed}) failed to load: {error}") from error
+        raise SceneError(
+            f"scene {spec.scene_id!r} ({spec.family}, seed {spec.seed}) failed to load: {error}"
+        ) from error
 
 
 def load_description(plain: dict):

@@ -5,6 +5,7 @@ All are (H, W) float arrays in [0, 1]. What they share is what the procedural fa
 detail at the scale of a few pixels *inside* a lit region or on a flat surface, where a denoiser
 that learned only smooth irradiance would smear it away.
 """
+
 from __future__ import annotations
 
 import numpy as np

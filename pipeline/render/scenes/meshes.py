@@ -3,6 +3,7 @@
 Normals are analytic (profile derivative, displacement gradient, height gradient) rather than
 averaged from faces, so texture seams never show as shading seams.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,11 +48,20 @@ def lathe(radii: np.ndarray, height: float, center, segments: int = 32) -> MeshD
 
     phi = np.linspace(0.0, 2.0 * np.pi, segments + 1)  # the seam vertex is duplicated for texcoords
     sin, cos = np.sin(phi)[None, :], np.cos(phi)[None, :]
-    body_vertices = np.stack([radii[:, None] * cos, np.repeat(heights[:, None], segments + 1, 1), radii[:, None] * sin], -1)
-    body_normals = np.stack([profile_normal[:, :1] * cos, np.repeat(profile_normal[:, 1:], segments + 1, 1), profile_normal[:, :1] * sin], -1)
+    body_vertices = np.stack(
+        [radii[:, None] * cos, np.repeat(heights[:, None], segments + 1, 1), radii[:, None] * sin], -1
+    )
+    body_normals = np.stack(
+        [profile_normal[:, :1] * cos, np.repeat(profile_normal[:, 1:], segments + 1, 1), profile_normal[:, :1] * sin],
+        -1,
+    )
     u, v = np.meshgrid(phi / (2.0 * np.pi), heights / height)
     body_uv = np.stack([u, v], -1)
-    vertices, normals, texcoords = [body_vertices.reshape(-1, 3)], [body_normals.reshape(-1, 3)], [body_uv.reshape(-1, 2)]
+    vertices, normals, texcoords = (
+        [body_vertices.reshape(-1, 3)],
+        [body_normals.reshape(-1, 3)],
+        [body_uv.reshape(-1, 2)],
+    )
     faces = [_grid_faces(rings, segments + 1)]
 
     count = rings * (segments + 1)
@@ -60,18 +70,29 @@ def lathe(radii: np.ndarray, height: float, center, segments: int = 32) -> MeshD
         center_index = count
         vertices += [np.array([[0.0, y, 0.0]]), rim]
         normals.append(np.tile([0.0, up, 0.0], (segments + 1, 1)))
-        texcoords.append(np.concatenate([[[0.5, 0.5]], 0.5 + 0.5 * np.stack([cos[0, :segments], sin[0, :segments]], 1)]))
+        texcoords.append(
+            np.concatenate([[[0.5, 0.5]], 0.5 + 0.5 * np.stack([cos[0, :segments], sin[0, :segments]], 1)])
+        )
         rim_index = center_index + 1 + np.arange(segments)
         nxt = center_index + 1 + (np.arange(segments) + 1) % segments
         center_col = np.full(segments, center_index)
         fan = np.stack([center_col, nxt, rim_index], 1) if up > 0 else np.stack([center_col, rim_index, nxt], 1)
         faces.append(fan.astype(np.uint32))
         count += segments + 1
-    return _placed(np.concatenate(vertices), np.concatenate(normals), np.concatenate(texcoords), np.concatenate(faces), center, 0.0)
+    return _placed(
+        np.concatenate(vertices), np.concatenate(normals), np.concatenate(texcoords), np.concatenate(faces), center, 0.0
+    )
 
 
-def bumpy_sphere(rng: np.random.Generator, radius: float, center, bumpiness: float = 0.08,
-                 rings: int = 20, segments: int = 40, waves: int = 5) -> MeshData:
+def bumpy_sphere(
+    rng: np.random.Generator,
+    radius: float,
+    center,
+    bumpiness: float = 0.08,
+    rings: int = 20,
+    segments: int = 40,
+    waves: int = 5,
+) -> MeshData:
     """A sphere displaced by a sum of random plane waves: r(d) = R (1 + eps * g(d)).
 
     The normal is d minus the tangential part of grad r / r, exact for this displacement.
@@ -95,16 +116,28 @@ def bumpy_sphere(rng: np.random.Generator, radius: float, center, bumpiness: flo
     faces = _grid_faces(rings + 1, segments + 1)[:, [0, 2, 1]]  # wind so geometric normals face out
     # Pole rows collapse to a point; drop the degenerate triangles there.
     positions = direction * r[:, None]
-    areas = np.linalg.norm(np.cross(positions[faces[:, 1]] - positions[faces[:, 0]], positions[faces[:, 2]] - positions[faces[:, 0]]), axis=1)
+    areas = np.linalg.norm(
+        np.cross(positions[faces[:, 1]] - positions[faces[:, 0]], positions[faces[:, 2]] - positions[faces[:, 0]]),
+        axis=1,
+    )
     keep = areas > 1e-12
     return _placed(positions, normals, texcoords, faces[keep], center, 0.0)
 
 
-def heightfield(rng: np.random.Generator, size: tuple[float, float], amplitude: float, center,
-                yaw: float = 0.0, resolution: int = 24, waves: int = 6) -> MeshData:
+def heightfield(
+    rng: np.random.Generator,
+    size: tuple[float, float],
+    amplitude: float,
+    center,
+    yaw: float = 0.0,
+    resolution: int = 24,
+    waves: int = 6,
+) -> MeshData:
     """A rectangular sheet (a rug, a rippled plate) with height h(x, z) = amplitude * sum of waves."""
     half_x, half_z = size[0] / 2.0, size[1] / 2.0
-    x, z = np.meshgrid(np.linspace(-half_x, half_x, resolution), np.linspace(-half_z, half_z, resolution), indexing="ij")
+    x, z = np.meshgrid(
+        np.linspace(-half_x, half_x, resolution), np.linspace(-half_z, half_z, resolution), indexing="ij"
+    )
     directions = rng.normal(size=(waves, 2)) * (6.0 / max(size))
     phases = rng.uniform(0.0, 2.0 * np.pi, waves)
     weights = rng.uniform(0.5, 1.0, waves) / waves

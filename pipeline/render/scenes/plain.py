@@ -6,6 +6,7 @@ and meshes are NumPy-backed markers. That keeps generation independent of the Mi
 Every float is snapped to a binary grid: NumPy's SIMD sin/exp may differ in the last bit
 between CPUs, and snapping makes the same seed give the same bytes on any machine.
 """
+
 from __future__ import annotations
 
 import struct

@@ -5,6 +5,7 @@ sharp-sunned) environment, where a denoiser must keep the pattern clean at 4 spp
 whose material is the subject: any of the families' materials, textured roughness, or a bump or
 normal map. The object is a sphere, a bumpy sphere, a vase, a box, or a ball on a pedestal.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -41,14 +42,29 @@ def preview(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] 
     rng = family_rng("preview", seed)
     scale = exposure(rng)
     size = rng.uniform(0.12, 0.25)
-    azimuth, elevation, distance = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(5.0, 35.0)), rng.uniform(4.0, 9.0) * size
+    azimuth, elevation, distance = (
+        rng.uniform(0, 2 * np.pi),
+        np.deg2rad(rng.uniform(5.0, 35.0)),
+        rng.uniform(4.0, 9.0) * size,
+    )
     target = np.array([0.0, size, 0.0])
-    eye = target + distance * np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])
+    eye = target + distance * np.array(
+        [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+    )
     scene = new_scene(resolution, eye, target, rng.uniform(30.0, 50.0))
     bitmap = hdr_sky(rng) if rng.uniform() < 0.75 else sky(rng)
     scene["environment"] = {"type": "envmap", "bitmap": bitmap, "scale": scale * rng.uniform(0.7, 1.2)}
-    floor = materials.material(rng, "textured") if rng.uniform() < 0.4 else \
-        {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": checker(rng), "filter_type": "bilinear"}}}
+    floor = (
+        materials.material(rng, "textured")
+        if rng.uniform() < 0.4
+        else {
+            "type": "twosided",
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {"type": "bitmap", "bitmap": checker(rng), "filter_type": "bilinear"},
+            },
+        }
+    )
     scene["floor"] = MeshShape(ground_quad(10.0, rng.uniform(10.0, 40.0)), floor)
     _subject(rng, scene, SHAPES[int(rng.integers(len(SHAPES)))], size)
     aim = Aim(eye, target, 2.0 * size, 0.0, scale)

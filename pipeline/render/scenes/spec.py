@@ -3,6 +3,7 @@
 Dask ships specs to worker processes, so a spec holds only a name, a family, a seed, a film
 size, the constructs mixed in, and (for user scenes) a path; meshes, textures and Mitsuba objects are rebuilt from it.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

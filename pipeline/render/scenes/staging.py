@@ -4,6 +4,7 @@ object placement and the objects themselves.
 Every random choice comes from one explicit PCG64 generator keyed by the family name and the
 seed, so the same seed gives the same scene on any machine.
 """
+
 from __future__ import annotations
 
 import zlib
@@ -43,7 +44,13 @@ def new_scene(resolution: tuple[int, int], eye, target, fov: float) -> dict:
             "near_clip": 0.01,
             "far_clip": 1000.0,
             "to_world": look_at(eye, target),
-            "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "film": {
+                "type": "hdrfilm",
+                "width": width,
+                "height": height,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+            },
             "sampler": {"type": "independent", "sample_count": 4},
         },
     }
@@ -89,8 +96,17 @@ def object_material(rng: np.random.Generator, kind: str, material_kinds: tuple[s
     return materials.material(rng, materials.pick(rng, material_kinds))
 
 
-def place_object(scene: dict, name: str, rng: np.random.Generator, kind: str, x: float, z: float,
-                 base: float, size: float, bsdf: dict) -> None:
+def place_object(
+    scene: dict,
+    name: str,
+    rng: np.random.Generator,
+    kind: str,
+    x: float,
+    z: float,
+    base: float,
+    size: float,
+    bsdf: dict,
+) -> None:
     """Add one object standing on height `base` at (x, z), footprint radius ~`size`."""
     if kind == "sphere":
         scene[name] = {"type": "sphere", "center": [x, base + size, z], "radius": size, "bsdf": bsdf}
@@ -100,13 +116,23 @@ def place_object(scene: dict, name: str, rng: np.random.Generator, kind: str, x:
         scene[name] = MeshShape(lathe(_vase_radii(rng, size), size * rng.uniform(1.5, 3.0), [x, base, z]), bsdf)
     elif kind == "box":
         half = size * rng.uniform(0.5, 0.7, 3)
-        scene[name] = {"type": "cube", "to_world": box([x, base + half[1], z], half, rng.uniform(0.0, 90.0)), "bsdf": bsdf}
+        scene[name] = {
+            "type": "cube",
+            "to_world": box([x, base + half[1], z], half, rng.uniform(0.0, 90.0)),
+            "bsdf": bsdf,
+        }
     elif kind == "cylinder":
         top = base + size * rng.uniform(1.0, 3.0)
         scene[name] = {"type": "cylinder", "p0": [x, base, z], "p1": [x, top, z], "radius": size, "bsdf": bsdf}
-        scene[f"{name}_cap"] = {"type": "disk", "to_world": planar([x, top, z], UP, [0.0, 0.0, -1.0], size, size), "bsdf": bsdf}
+        scene[f"{name}_cap"] = {
+            "type": "disk",
+            "to_world": planar([x, top, z], UP, [0.0, 0.0, -1.0], size, size),
+            "bsdf": bsdf,
+        }
     elif kind == "wavy":
-        sheet = heightfield(rng, (2 * size, 2 * size), 0.15 * size, [x, base + 0.15 * size, z], rng.uniform(0.0, 90.0), 20)
+        sheet = heightfield(
+            rng, (2 * size, 2 * size), 0.15 * size, [x, base + 0.15 * size, z], rng.uniform(0.0, 90.0), 20
+        )
         scene[name] = MeshShape(sheet, bsdf)
     else:
         raise KeyError(f"unknown object kind {kind!r}; known: {', '.join(OBJECT_KINDS)}")

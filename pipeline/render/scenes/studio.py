@@ -9,6 +9,7 @@ black and that a lit edge next to the void is not noise. Two kinds of lighting:
 Objects are often glass, metal or glossy, sometimes textured; every DIFFUSE_ONLY_EVERY-th seed is
 purely diffuse. The camera distance varies so an object may fill the frame or be a small thing in it.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,13 +36,20 @@ def _small_light(scene: dict, name: str, rng: np.random.Generator, scale: float,
     position = toward + rng.normal(0.0, 0.5, 3)
     position = position / np.linalg.norm(position) * rng.uniform(1.0, 3.0)
     size = rng.uniform(0.03, 0.25)
-    radiance = rgb(warm_white(rng) * scale * rng.uniform(1.5, 4.0) / size ** 2)
+    radiance = rgb(warm_white(rng) * scale * rng.uniform(1.5, 4.0) / size**2)
     if rng.uniform() < 0.5:
-        scene[name] = {"type": "sphere", "center": position.tolist(), "radius": size,
-                       "emitter": {"type": "area", "radiance": radiance}}
+        scene[name] = {
+            "type": "sphere",
+            "center": position.tolist(),
+            "radius": size,
+            "emitter": {"type": "area", "radiance": radiance},
+        }
     else:
-        scene[name] = {"type": "rectangle", "to_world": planar(position, -position, UP, size, size),
-                       "emitter": {"type": "area", "radiance": radiance}}
+        scene[name] = {
+            "type": "rectangle",
+            "to_world": planar(position, -position, UP, size, size),
+            "emitter": {"type": "area", "radiance": radiance},
+        }
 
 
 def studio(seed: int, resolution: tuple[int, int], constructs: tuple[str, ...] = ()) -> dict:

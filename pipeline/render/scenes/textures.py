@@ -3,6 +3,7 @@
 All images are linear RGB float32 (H, W, 3). Albedos stay within [0.03, 0.85] so no surface
 reflects more light than is physically plausible.
 """
+
 from __future__ import annotations
 
 import colorsys
@@ -118,7 +119,13 @@ def sky(rng: np.random.Generator, size: tuple[int, int] = SKY_SIZE) -> Image:
     image = np.where(elevation[..., None] >= 0.0, (1.0 - up) * horizon + up * zenith, ground)
 
     sun_elevation, sun_azimuth = rng.uniform(0.15, 1.2), rng.uniform(0.0, 2.0 * np.pi)
-    sun = np.array([np.cos(sun_elevation) * np.sin(sun_azimuth), np.sin(sun_elevation), -np.cos(sun_elevation) * np.cos(sun_azimuth)])
+    sun = np.array(
+        [
+            np.cos(sun_elevation) * np.sin(sun_azimuth),
+            np.sin(sun_elevation),
+            -np.cos(sun_elevation) * np.cos(sun_azimuth),
+        ]
+    )
     cosine = np.clip(direction @ sun, -1.0, 1.0)
     angular_radius = rng.uniform(0.05, 0.12)
     glow = np.exp(-((1.0 - cosine) / (1.0 - np.cos(angular_radius))))
@@ -139,7 +146,10 @@ def hdr_sky(rng: np.random.Generator, size: tuple[int, int] = HDR_SKY_SIZE) -> I
     """
     direction = _lat_long_directions(size)
     height, width = size
-    elevation, azimuth = np.arcsin(np.clip(direction[..., 1], -1.0, 1.0)), np.arctan2(direction[..., 0], -direction[..., 2])
+    elevation, azimuth = (
+        np.arcsin(np.clip(direction[..., 1], -1.0, 1.0)),
+        np.arctan2(direction[..., 0], -direction[..., 2]),
+    )
     solid_angle = np.cos(elevation) * (np.pi / height) * (2.0 * np.pi / width)
 
     zenith = np.array(random_colour(rng, saturation=(0.3, 0.7), value=(0.3, 0.9)))
@@ -150,8 +160,9 @@ def hdr_sky(rng: np.random.Generator, size: tuple[int, int] = HDR_SKY_SIZE) -> I
     skyline = np.zeros(width)
     for _ in range(int(rng.integers(0, 12))):  # buildings: dark blocks rising from the horizon
         start, span = int(rng.integers(width)), int(rng.integers(2, width // 10))
-        skyline[np.arange(start, start + span) % width] = np.maximum(skyline[np.arange(start, start + span) % width],
-                                                                     rng.uniform(0.02, 0.25))
+        skyline[np.arange(start, start + span) % width] = np.maximum(
+            skyline[np.arange(start, start + span) % width], rng.uniform(0.02, 0.25)
+        )
     below = elevation < skyline[None, :]
     image = np.where(below[..., None], ground, image)
 
@@ -160,10 +171,18 @@ def hdr_sky(rng: np.random.Generator, size: tuple[int, int] = HDR_SKY_SIZE) -> I
         half_azimuth, half_elevation = rng.uniform(0.05, 0.3), rng.uniform(0.03, 0.2)
         offset = (azimuth - centre_azimuth + np.pi) % (2.0 * np.pi) - np.pi
         panel = (np.abs(offset) < half_azimuth) & (np.abs(elevation - centre_elevation) < half_elevation)
-        image = np.where(panel[..., None], rng.uniform(2.0, 12.0) * np.array(random_colour(rng, (0.0, 0.2), (0.8, 1.0))), image)
+        image = np.where(
+            panel[..., None], rng.uniform(2.0, 12.0) * np.array(random_colour(rng, (0.0, 0.2), (0.8, 1.0))), image
+        )
 
     sun_elevation, sun_azimuth = rng.uniform(0.15, 1.2), rng.uniform(-np.pi, np.pi)
-    sun = np.array([np.cos(sun_elevation) * np.sin(sun_azimuth), np.sin(sun_elevation), -np.cos(sun_elevation) * np.cos(sun_azimuth)])
+    sun = np.array(
+        [
+            np.cos(sun_elevation) * np.sin(sun_azimuth),
+            np.sin(sun_elevation),
+            -np.cos(sun_elevation) * np.cos(sun_azimuth),
+        ]
+    )
     cosine = direction @ sun
     disc = cosine > np.cos(np.deg2rad(rng.uniform(0.5, 2.5)))
     if not disc.any():  # smaller than a pixel: the pixel nearest the sun's direction

@@ -10,6 +10,7 @@ resolver, the scene's <path> folders included) and checked up front, so a missin
 by name instead of as a parser error deep inside Mitsuba, and the scene hash covers exactly the
 files Mitsuba loads.
 """
+
 from __future__ import annotations
 
 import copy
@@ -82,9 +83,9 @@ def xml_resolution(path: str | Path) -> tuple[int, int]:
 class _Reference:
     element: ET.Element
     attribute: str
-    name: str      # as its file writes it, $defaults substituted
-    target: Path   # the absolute file (or <path> folder) Mitsuba's resolver finds
-    owner: Path    # the XML file that names it
+    name: str  # as its file writes it, $defaults substituted
+    target: Path  # the absolute file (or <path> folder) Mitsuba's resolver finds
+    owner: Path  # the XML file that names it
 
 
 def _references(path: Path, root: ET.Element, trees: dict[Path, ET.Element] | None = None) -> list[_Reference]:
@@ -100,12 +101,14 @@ def _references(path: Path, root: ET.Element, trees: dict[Path, ET.Element] | No
 
     strings: list[tuple[ET.Element, str, Path]] = []
     resolver, found = _parsed_references(path, root, mi.file_resolver(), {}, strings, {} if trees is None else trees)
-    return found + [_Reference(element, "value", name, _resolve(resolver, name, owner), owner)
-                    for element, name, owner in strings]
+    return found + [
+        _Reference(element, "value", name, _resolve(resolver, name, owner), owner) for element, name, owner in strings
+    ]
 
 
-def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str, str],
-                       strings: list, trees: dict[Path, ET.Element]) -> tuple[object, list[_Reference]]:
+def _parsed_references(
+    path: Path, root: ET.Element, outer, inherited: dict[str, str], strings: list, trees: dict[Path, ET.Element]
+) -> tuple[object, list[_Reference]]:
     """One file's parse-time references (and its includes'); its `filename` strings go to `strings`.
 
     Returns the file's search path at its end, with the references in document order.
@@ -134,8 +137,9 @@ def _parsed_references(path: Path, root: ET.Element, outer, inherited: dict[str,
             found.append(reference)
             if element.tag == "include" and reference.target not in trees:
                 trees[reference.target] = _parse(reference.target)
-                found += _parsed_references(reference.target, trees[reference.target], resolver, defaults,
-                                            strings, trees)[1]
+                found += _parsed_references(
+                    reference.target, trees[reference.target], resolver, defaults, strings, trees
+                )[1]
     return resolver, found
 
 
@@ -151,7 +155,7 @@ def _search_list(resolver) -> str:
     import mitsuba as mi
 
     folders = [str(folder) for folder in resolver]
-    return ", ".join(folders[:len(folders) - len(list(mi.file_resolver()))])
+    return ", ".join(folders[: len(folders) - len(list(mi.file_resolver()))])
 
 
 def _hdr_film(width: int, height: int) -> ET.Element:
@@ -186,7 +190,7 @@ def _inline(element: ET.Element, trees: dict[Path, ET.Element], chain: list[Path
             raise SceneError(f"{chain[0]}: its includes form a cycle ({' -> '.join(p.name for p in chain + [target])})")
         included = copy.deepcopy(trees[target])  # a file included twice is inlined twice
         _inline(included, trees, chain + [target])
-        element[index:index + 1] = list(included)
+        element[index : index + 1] = list(included)
 
 
 def _check_parameters(path: Path, root: ET.Element) -> None:
@@ -196,8 +200,10 @@ def _check_parameters(path: Path, root: ET.Element) -> None:
         for value in element.attrib.values():
             for name in _REFERENCE.findall(value):
                 if name not in defined:
-                    raise SceneError(f"{path}: ${name} is used but has no <default> (admc passes only "
-                                     f"{', '.join('$' + p for p in SCENE_PARAMETERS)}, as `mitsuba -D` would)")
+                    raise SceneError(
+                        f"{path}: ${name} is used but has no <default> (admc passes only "
+                        f"{', '.join('$' + p for p in SCENE_PARAMETERS)}, as `mitsuba -D` would)"
+                    )
 
 
 def _parameters(text: str, resolution: tuple[int, int], spp: int) -> dict[str, str]:
@@ -248,7 +254,7 @@ def _element_at(text: str, match: re.Match) -> str:
     element there and the files it names instead."""
     data = text.encode("utf-8")
     line, column = int(match[1]), int(match[2])
-    offset = sum(len(row) + 1 for row in data.split(b"\n")[:line - 1]) + column - 1  # at the tag's name
+    offset = sum(len(row) + 1 for row in data.split(b"\n")[: line - 1]) + column - 1  # at the tag's name
     index = len(re.findall(rb"<(?![/!?])", data[:offset])) - 1  # elements start in document order
     elements = list(ET.fromstring(text).iter())
     if not 0 <= index < len(elements):
@@ -279,8 +285,9 @@ def _scene_id(name: str) -> str:
     return "xml-" + (re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "scene")
 
 
-def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
-               left_out: list[SceneError] | None = None) -> list[SceneSpec]:
+def xml_corpus(
+    dirs: list[str], resolution: tuple[int, int] | None, left_out: list[SceneError] | None = None
+) -> list[SceneSpec]:
     """One spec per XML scene in each folder: `*.xml` in the folder and in its direct subfolders.
 
     What is a scene is decided as Mitsuba reads the file, includes inlined: a <scene> with a <sensor>,
@@ -300,8 +307,10 @@ def xml_corpus(dirs: list[str], resolution: tuple[int, int] | None,
             raise SceneError(f"{folder}: scene folder not found")
         found, broken = _scene_files(folder)
         if not found and not any(not isinstance(error, NotAScene) for error in broken):
-            raise SceneError(f"{folder}: no Mitsuba scene (an .xml file with a <sensor>) in this folder or its "
-                             f"subfolders{''.join('; ' + str(error) for error in broken)}")
+            raise SceneError(
+                f"{folder}: no Mitsuba scene (an .xml file with a <sensor>) in this folder or its "
+                f"subfolders{''.join('; ' + str(error) for error in broken)}"
+            )
         problems += broken
         for name, path in found:
             scene_id = _scene_id(name)
@@ -354,8 +363,9 @@ def _scene_files(folder: Path) -> tuple[list[tuple[str, Path]], list[SceneError]
         if path.resolve() in includers:
             by = includers[path.resolve()]
             names = ", ".join(p.name for p in by[:3]) + (f" and {len(by) - 3} more" if len(by) > 3 else "")
-            left_out.append(NotAScene(f"{path}: skipped, a part of other scenes, not a scene of its own "
-                                      f"(included by {names})"))
+            left_out.append(
+                NotAScene(f"{path}: skipped, a part of other scenes, not a scene of its own (included by {names})")
+            )
         elif isinstance(root, SceneError):
             left_out.append(root)
         elif next(root.iter("sensor"), None) is None:
@@ -375,6 +385,8 @@ def _checked_spec(scene_id: str, path: Path, resolution: tuple[int, int] | None)
     root = _expanded(path)
     _check_parameters(path, root)
     if next(root.iter("emitter"), None) is None:
-        raise SceneError(f"{path}: no <emitter> (no light, no environment) in it or in the files it includes: "
-                         "it would render black; add a light or move the file out of the scene folder")
+        raise SceneError(
+            f"{path}: no <emitter> (no light, no environment) in it or in the files it includes: "
+            "it would render black; add a light or move the file out of the scene folder"
+        )
     return SceneSpec(scene_id, XML_FAMILY, 0, size, str(path.resolve()))
