@@ -1,13 +1,22 @@
 """Training data: symmetry augmentation (normals transformed with the image), the seeded resumable
 batch stream, and DataLoader batches from a real patch store with and without workers."""
 
+import threading
+
 import numpy as np
 import pytest
 import torch
 
 from conftest import build_tiny_store
 from admc.model.symmetry import N_SYMMETRIES, apply
-from admc.model.training.data import BatchStream, PatchDataset, load_rows, spread_rows, train_loader
+from admc.model.training.data import (
+    BatchStream,
+    PatchDataset,
+    load_rows,
+    quiet_closed_pipes,
+    spread_rows,
+    train_loader,
+)
 from admc.stores.patches import PatchReader, fingerprint as store_fingerprint
 
 
@@ -175,3 +184,26 @@ def test_spread_rows_are_evenly_spaced_and_never_repeat():
     assert spread_rows(0, 5) == []
     picked = spread_rows(1000, 64)
     assert len(set(picked)) == 64 and picked[-1] == 999
+
+
+def test_a_loader_worker_does_not_print_a_closed_pipe_but_prints_other_errors(monkeypatch):
+    # Ctrl-C during train: the main process stops reading while a worker's resource_sharer thread still
+    # serves a batch's file descriptor; its BrokenPipeError must not print a traceback under the CLI's
+    # one-line message (test_user_errors_cli's Ctrl-C test met it now and then)
+    printed = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: printed.append(args.exc_type))
+    quiet_closed_pipes(0)
+
+    def raise_in_thread(error):
+        def run():
+            raise error
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        thread.join()
+
+    raise_in_thread(BrokenPipeError(32, "Broken pipe"))
+    raise_in_thread(ConnectionResetError(104, "Connection reset by peer"))
+    assert printed == []
+    raise_in_thread(ValueError("a worker's own bug"))
+    assert printed == [ValueError]

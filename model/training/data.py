@@ -8,6 +8,7 @@ batches it had consumed. Augmentation is the 8 symmetries of the square (symmetr
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 
 import numpy as np
@@ -123,7 +124,25 @@ def train_loader(
         persistent_workers=False,
         generator=torch.Generator().manual_seed(seed),
         prefetch_factor=2 if num_workers > 0 else None,
+        worker_init_fn=quiet_closed_pipes,
     )
+
+
+def quiet_closed_pipes(_worker_id: int) -> None:
+    """In a loader worker: a closed pipe in a background thread is not printed as a traceback.
+
+    A worker hands each batch's tensors to the main process through file descriptors, served by a
+    thread of multiprocessing's resource_sharer. When the main process stops reading (Ctrl-C, or an
+    error it reports itself), that thread meets a broken pipe; its traceback would bury the one-line
+    message the CLI prints. Any other exception in a worker's thread is printed as before.
+    """
+    previous = threading.excepthook
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        if not issubclass(args.exc_type, (BrokenPipeError, ConnectionResetError)):
+            previous(args)
+
+    threading.excepthook = hook
 
 
 def spread_rows(length: int, n: int) -> list[int]:
