@@ -148,30 +148,47 @@ def ood_corpus(cfg: Config) -> list[SceneSpec]:
     )
 
 
-def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Task]]:
-    """Per scene: {"spp0004": task, ..., "reference": task}; keyed by the scene's content hash."""
-    variant = use_variant(cfg.render.variant)  # resolved here: "auto" must not hide which variant rendered
-    tasks: dict[str, dict[str, Task]] = {}
-    for spec in specs:
-        content = scenes.scene_hash(spec)
-        levels = [(f"spp{s:04d}", s, False) for s in cfg.render.spp]
-        levels.append(("reference", cfg.render.reference_spp, True))
-        tasks[spec.scene_id] = {}
-        for name, spp, reference in levels:
-            params = {
+def render_levels(cfg: Config, spec, content: str) -> list[tuple[str, dict]]:
+    """(name, key params) of every render one scene gets, whichever renderer makes it: its noisy inputs at
+    render.spp ("spp0004", ...) and its "reference", each from a seed of its own."""
+    levels = [(f"spp{s:04d}", s, False) for s in cfg.render.spp]
+    levels.append(("reference", cfg.render.reference_spp, True))
+    return [
+        (
+            name,
+            {
                 "scene": dataclasses.asdict(spec),
                 "scene_hash": content,
                 "spp": spp,
                 "reference": reference,
                 "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
+            },
+        )
+        for name, spp, reference in levels
+    ]
+
+
+def level_label(scene_id: str, params: dict) -> str:
+    """How progress names one render: "room-0001 @ 16 spp", "room-0001 @ reference 384 spp"."""
+    return f"{scene_id} @ {'reference ' if params['reference'] else ''}{params['spp']} spp"
+
+
+def render_tasks(cfg: Config, specs: list[SceneSpec]) -> dict[str, dict[str, Task]]:
+    """Per scene: {"spp0004": task, ..., "reference": task}; keyed by the scene's content hash."""
+    variant = use_variant(cfg.render.variant)  # resolved here: "auto" must not hide which variant rendered
+    tasks: dict[str, dict[str, Task]] = {}
+    for spec in specs:
+        tasks[spec.scene_id] = {}
+        for name, key in render_levels(cfg, spec, scenes.scene_hash(spec)):
+            params = {
+                **key,
                 "variant": variant,
                 "max_depth": cfg.render.max_depth,
                 "max_spp_per_pass": cfg.render.max_spp_per_pass,
             }
-            label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp"
             tasks[spec.scene_id][name] = Task(
                 stage="render",
-                label=label,
+                label=level_label(spec.scene_id, params),
                 fn=_render_task,
                 params=params,
                 code_version=RENDER_CODE,

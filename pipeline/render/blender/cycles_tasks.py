@@ -10,7 +10,6 @@ renders what is missing and nothing else, like a Mitsuba render.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import re
@@ -224,29 +223,21 @@ def render_blend(
 
 def blend_render_tasks(cfg, specs: list[BlendSpec]) -> dict[str, dict[str, Task]]:
     """Per scene: {"spp0004": task, ..., "reference": task}, as render_tasks gives for Mitsuba scenes."""
-    from admc.pipeline.render.tasks import derive_seed
+    from admc.pipeline.render.tasks import level_label, render_levels
 
     tasks: dict[str, dict[str, Task]] = {}
     for spec in specs:
-        content = blend_hash(spec)
-        levels = [(f"spp{s:04d}", s, False) for s in cfg.render.spp]
-        levels.append(("reference", cfg.render.reference_spp, True))
         tasks[spec.scene_id] = {}
-        for name, spp, reference in levels:
+        for name, key in render_levels(cfg, spec, blend_hash(spec)):
             params = {
-                "scene": dataclasses.asdict(spec),
-                "scene_hash": content,
-                "spp": spp,
-                "reference": reference,
-                "seed": derive_seed(cfg.render.seed, spec.scene_id, spp, reference),
+                **key,
                 "subrenders": cfg.render.cycles_subrenders,
                 "blender": cfg.render.blender,
                 "threads": cfg.render.blender_threads,
             }
-            label = f"{spec.scene_id} @ {'reference ' if reference else ''}{spp} spp (Cycles)"
             tasks[spec.scene_id][name] = Task(
                 stage="render",
-                label=label,
+                label=level_label(spec.scene_id, params) + " (Cycles)",
                 fn=_blend_task,
                 params=params,
                 code_version=BLEND_CODE,
