@@ -28,7 +28,12 @@ console = Console(soft_wrap=True)  # long paths and Markdown rows stay whole lin
 err = Console(stderr=True, soft_wrap=True)
 
 ConfigOpt = Annotated[
-    Optional[Path], typer.Option("--config", "-c", help="TOML config overlaying configs/default.toml.")
+    Optional[list[Path]],
+    typer.Option(
+        "--config",
+        "-c",
+        help="TOML config overlaying configs/default.toml (repeatable: each file overlays the ones before it).",
+    ),
 ]
 SetOpt = Annotated[
     Optional[list[str]], typer.Option("--set", "-s", help="Override a value: section.key=value (repeatable).")
@@ -55,7 +60,7 @@ def _user_errors(fn):
     return wrapper
 
 
-def _load(config: Optional[Path], overrides: Optional[list[str]], scheduler: Optional[str] = None):
+def _load(config: Optional[list[Path]], overrides: Optional[list[str]], scheduler: Optional[str] = None):
     """The checked config. Commands call this before importing their stage, so a missing config file or a
     bad key is named in well under a second, before torch and Mitsuba load."""
     items = list(overrides or [])

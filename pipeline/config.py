@@ -387,11 +387,13 @@ def default_config_text() -> str:
     return resources.files("admc.configs").joinpath("default.toml").read_text()
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> Config:
-    """default.toml, overlaid by `path` (if given), overlaid by `section.key=value` overrides."""
+def load_config(path: str | Path | list[str | Path] | None = None, overrides: list[str] = ()) -> Config:
+    """default.toml, overlaid by `path` (if given; a list: each file in turn), overlaid by `section.key=value`
+    overrides."""
     values = tomllib.loads(default_config_text())
-    if path is not None:
-        values = _merge(values, _read_toml(Path(path)), str(path))
+    paths = path if isinstance(path, list) else [] if path is None else [path]
+    for one in paths:
+        values = _merge(values, _read_toml(Path(one)), str(one))
     for item in overrides:
         section, key, value = _parse_override(item)
         values = _merge(values, {section: {key: value}}, f"--set {item}")

@@ -143,3 +143,12 @@ def test_config_prints_resolved_values(tmp_path):
     out = run("config", "--set", "render.spp=[2, 8]", cwd=tmp_path)
     assert out.returncode == 0
     assert "spp = [2, 8]" in out.stdout
+
+
+def test_several_configs_overlay_in_order(tmp_path):
+    # a recipe file and the user's own: `--config configs/domain.toml --config mine.toml`
+    (tmp_path / "recipe.toml").write_text("[render]\nreference_spp = 256\nmax_depth = 5\n")
+    (tmp_path / "mine.toml").write_text("[render]\nreference_spp = 1024\n")
+    out = run("config", "--config", "recipe.toml", "--config", "mine.toml", "--set", "render.spp=[2, 8]", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "reference_spp = 1024" in out.stdout and "max_depth = 5" in out.stdout and "spp = [2, 8]" in out.stdout
