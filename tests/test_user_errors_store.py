@@ -157,3 +157,13 @@ def test_train_refuses_a_split_without_validation_scenes_before_rendering(tmp_pa
         "falls in the val split, which train.val_every = 100 validates on" in message
     )
     assert not (tmp_path / "w").exists()
+
+
+def test_train_on_an_empty_corpus_says_to_name_the_frames(tmp_path):
+    # configs/domain.toml sets corpus.n_scenes = 0: without a folder of frames there is nothing to train on
+    overrides = [*tiny_store_overrides(tmp_path / "w", size=32, patch=32), "corpus.n_scenes=0"]
+    out = admc("train", overrides=overrides)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    message = " ".join(out.stderr.split())
+    assert "the corpus is empty: corpus.n_scenes = 0 and no scene in corpus.xml_dirs or corpus.blend_dirs" in message
+    assert not (tmp_path / "w").exists()

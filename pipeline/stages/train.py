@@ -87,6 +87,11 @@ def check_splits(cfg: Config) -> None:
     """Refuse, before anything is rendered, a tile.split that leaves training (or validation, with
     train.val_every > 0 and tile.val_set = "split") without a single scene of the corpus."""
     specs = render.corpus(cfg)
+    if not specs:
+        raise ConfigError(
+            "the corpus is empty: corpus.n_scenes = 0 and no scene in corpus.xml_dirs or corpus.blend_dirs; "
+            "name your folder of frames, e.g. --set 'corpus.xml_dirs=[\"/path/to/frames\"]'"
+        )
     counts = Counter(tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) for s in specs)
     corpus = f"the {len(specs)}-scene corpus (tile.split = {list(cfg.tile.split)}, tile.seed = {cfg.tile.seed})"
     if not counts["train"]:
