@@ -16,16 +16,33 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "make_domain_scenes.p
 NAMES = ["cbox-0-000.xml", "cbox-0-001.xml", "cbox-0-002.xml"]
 
 
-def make_scenes(out: Path, seed: int) -> dict[str, bytes]:
-    """Run the script for 3 scenes; the files it wrote, by name."""
+def make_scenes(out: Path, seed: int = 0, domain: str = "cbox") -> dict[str, bytes]:
+    """Run the script for 3 frames of `domain`; the files it wrote, by name."""
     done = subprocess.run(
-        [sys.executable, str(SCRIPT), str(out), "--scenes", "3", "--seed", str(seed)],
+        [sys.executable, str(SCRIPT), str(out), "--domain", domain, "--frames", "3", "--seed", str(seed)],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert done.returncode == 0, done.stderr
     return {path.name: path.read_bytes() for path in sorted(out.iterdir())}
+
+
+def render_frames(tmp_path: Path, frames: Path):
+    """The folder's frames rendered through the XML corpus: 32x32, 4 spp and an 8-spp reference."""
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path / 'work'}'",
+            "run.scheduler=sync",
+            "render.resolution=[32, 32]",
+            "render.spp=[4]",
+            "render.reference_spp=8",
+            "corpus.n_scenes=0",
+            f"corpus.xml_dirs=['{frames}']",
+        ],
+    )
+    return render_corpus(cfg, progress=False)
 
 
 def test_the_same_seed_writes_the_same_files_and_another_seed_other_ones(tmp_path):
@@ -39,19 +56,7 @@ def test_the_same_seed_writes_the_same_files_and_another_seed_other_ones(tmp_pat
 
 def test_cbox_scenes_load_and_render_with_the_split_integrator(tmp_path, variant):
     make_scenes(tmp_path / "cbox", seed=0)
-    cfg = load_config(
-        None,
-        [
-            f"run.workdir='{tmp_path / 'work'}'",
-            "run.scheduler=sync",
-            "render.resolution=[32, 32]",
-            "render.spp=[4]",
-            "render.reference_spp=8",
-            "corpus.n_scenes=0",
-            f"corpus.xml_dirs=['{tmp_path / 'cbox'}']",
-        ],
-    )
-    result = render_corpus(cfg, progress=False)
+    result = render_frames(tmp_path, tmp_path / "cbox")
     assert result.executed == 6 and len(result.sidecars) == 6
     specular = {}
     for sidecar in result.sidecars:
@@ -72,40 +77,14 @@ def test_a_domain_is_one_set_whose_frames_render_through_the_xml_corpus(tmp_path
     same bytes for the same seed; every frame loads and renders with the split integrator, non-black and
     finite, and the set's frames differ (cameras, lights) while sharing its files."""
     out = tmp_path / domain
-    done = subprocess.run(
-        [sys.executable, str(SCRIPT), str(out), "--domain", domain, "--frames", "3"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert done.returncode == 0, done.stderr
-    files = {path.name: path.read_bytes() for path in sorted(out.iterdir())}
+    files = make_scenes(out, domain=domain)
     frames = [name for name in files if name.endswith(".xml")]
     assert frames == [f"{domain}-0-{i:03d}.xml" for i in range(3)] and len(set(files[f] for f in frames)) == 3
     shared = [name for name in files if not name.endswith(".xml")]
     assert shared and all(name.endswith((".exr", ".obj")) for name in shared)
     assert all(any(name in files[f].decode() for f in frames) for name in shared), "every asset is used"
-    again = tmp_path / "again"
-    subprocess.run(
-        [sys.executable, str(SCRIPT), str(again), "--domain", domain, "--frames", "3"],
-        check=True,
-        capture_output=True,
-        timeout=120,
-    )
-    assert {path.name: path.read_bytes() for path in sorted(again.iterdir())} == files
-    cfg = load_config(
-        None,
-        [
-            f"run.workdir='{tmp_path / 'work'}'",
-            "run.scheduler=sync",
-            "render.resolution=[32, 32]",
-            "render.spp=[4]",
-            "render.reference_spp=8",
-            "corpus.n_scenes=0",
-            f"corpus.xml_dirs=['{out}']",
-        ],
-    )
-    result = render_corpus(cfg, progress=False)
+    assert make_scenes(tmp_path / "again", domain=domain) == files
+    result = render_frames(tmp_path, out)
     assert result.executed == 6
     for sidecar in result.sidecars:
         layers = read_exr(
