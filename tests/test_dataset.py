@@ -62,7 +62,8 @@ def test_store_rows_equal_the_transformed_exr_crops(built):
             feats = tf.features(layers["normal"], layers["depth"], layers["albedo"], layers["coverage"])
             np.testing.assert_array_equal(row["features"], feats[crop].transpose(2, 0, 1).astype(np.float16))
             reader_rows += 1
-        assert reader_rows == summary["rows"] == 3 * 2
+        crops = 4 if summary["split"] == "val" else 3  # val: the 2x2 grid of 32-pixel crops that covers 64x64
+        assert reader_rows == summary["rows"] == crops * 2
 
 
 def _origin(store, group, row):
@@ -204,6 +205,18 @@ def test_crops_favour_noisy_regions():
     origins = tile.choose_crops(score, 200 // 10, 16, 8, np.random.default_rng(0))
     right = (origins[:, 1] >= 24).mean()
     assert right > 0.7
+
+
+@pytest.mark.parametrize("height, width, patch", [(256, 256, 128), (160, 200, 128), (64, 64, 32), (128, 131, 128)])
+def test_val_crops_cover_the_whole_frame_once_per_grid_cell(height, width, patch):
+    origins = tile.grid_origins(height, width, patch)
+    covered = np.zeros((height, width), dtype=int)
+    for y, x in origins:
+        assert 0 <= y <= height - patch and 0 <= x <= width - patch
+        covered[y : y + patch, x : x + patch] += 1
+    assert covered.min() >= 1 and len(origins) == -(-height // patch) * -(-width // patch)
+    if height % patch == 0 and width % patch == 0:
+        assert covered.max() == 1  # an exact tiling: every pixel scored once
 
 
 def test_image_smaller_than_patch_is_a_clear_error():
@@ -395,20 +408,25 @@ def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
 
 
 def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(tmp_path):
-    """tile.clean_targets: each row's target is OIDN's per-branch output on the sanitised reference (the
+    """tile.clean_targets: each train row's target is OIDN's per-branch output on the sanitised reference (the
     refiner's base function at `high`), transformed as the raw reference would be; noisy rows and features
-    are untouched. The store records it, so a store tiled on raw references refuses the clean config."""
+    are untouched. Val rows keep the raw reference (OIDN's output would favour OIDN in validation). The
+    store records it, so a store tiled on raw references refuses the clean config."""
     from admc.model.inference.oidn_base import oidn_bases
     from admc.pipeline.render.variants import use_variant
 
     use_variant("auto")
-    raw = build_dataset(tiny(tmp_path / "raw", 2), progress=False)
-    clean_cfg = load_config(
-        None,
-        [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true", "tile.store=clean.zarr", *tiny_overrides(2)],
-    )
+    overrides = [
+        f"run.workdir='{tmp_path / 'raw'}'",
+        *tiny_overrides(2),
+        "tile.split=[0.5, 0.5, 0.0]",
+        "tile.seed=1",
+    ]  # one of each
+    raw = build_dataset(load_config(None, overrides), progress=False)
+    clean_cfg = load_config(None, [*overrides, "tile.clean_targets=true", "tile.store=clean.zarr"])
     clean = build_dataset(clean_cfg, progress=False)
     assert clean.executed == 2 and all(s["split"] for s in clean.tiles)  # renders cached: only the tiles ran
+    assert {s["split"] for s in clean.tiles} == {"train", "val"}
     for summary in clean.tiles:
         split, scene_id = summary["split"], summary["scene_id"]
         reference = tile._clean(exr.read_exr(clean.renders_dir / scene_id / "reference.exr"), {}, "reference")
@@ -428,8 +446,11 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
                     if branch == "diffuse"
                     else tf.specular_forward(bases["specular"])
                 )[y : y + 32, x : x + 32].transpose(2, 0, 1)
+                if split == "val":
+                    np.testing.assert_array_equal(row["reference"], raw_row["reference"])
+                    continue
                 np.testing.assert_array_equal(row["reference"], want.astype(np.float16).astype(np.float32))
                 assert not np.array_equal(row["reference"], raw_row["reference"])
-    mixed = load_config(None, [f"run.workdir='{tmp_path / 'raw'}'", "tile.clean_targets=true", *tiny_overrides(2)])
+    mixed = load_config(None, [*overrides, "tile.clean_targets=true"])
     with pytest.raises(patches.PatchStoreError, match="clean_targets"):
         build_dataset(mixed, progress=False)  # the raw store (patches.zarr) is refused, naming the key

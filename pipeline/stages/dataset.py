@@ -108,7 +108,9 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
                 "seed": cfg.tile.seed,
                 "refiner_base": cfg.tile.refiner_base if cfg.tile.oidn_base else None,
                 **({"noise_maps": True} if noise_maps(cfg) else {}),
-                **({"clean_targets": True} if cfg.tile.clean_targets else {}),
+                # val keeps the raw reference: OIDN's output on it shares OIDN's errors, so it would favour
+                # OIDN (and the blend toward it) where a truer reference does not
+                **({"clean_targets": True} if cfg.tile.clean_targets and split == "train" else {}),
             },
             source=render.scene_source(spec),
         )

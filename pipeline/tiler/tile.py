@@ -3,7 +3,8 @@
 Crops are chosen once per scene and shared by every spp level, so each noisy row is paired with
 the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
 candidates are drawn uniformly and kept with probability proportional to their relative noise
-plus reference edge strength, with a floor so flat regions still appear. Splits are assigned per
+plus reference edge strength, with a floor so flat regions still appear. Val scenes are cut on a grid
+that covers each frame instead, so validation scores whole frames as the evaluation does. Splits are assigned per
 scene by a stable hash, never per patch, and never move when the corpus grows. With `refiner_base`,
 OIDN denoises each whole noisy image per branch (as inference does) at the qualities of that base
 and its crops are stored as the rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each
@@ -68,6 +69,15 @@ def choose_crops(
     weights = weights + NOISE_FLOOR * (weights.mean() + 1e-12)
     picked = rng.choice(k, size=n, replace=False, p=weights / weights.sum())
     return np.stack([ys[picked], xs[picked]], axis=1).astype(np.int32)
+
+
+def grid_origins(height: int, width: int, patch: int) -> np.ndarray:
+    """(n, 2) crop origins (y, x) that together cover the whole image: ceil(size / patch) crops per axis,
+    evenly spaced from edge to edge (overlapping where the size is not a multiple of the patch)."""
+    if height < patch or width < patch:
+        raise ValueError(f"image {width}x{height} is smaller than the {patch}x{patch} patch size")
+    ys, xs = (np.linspace(0, size - patch, -(-size // patch)).round().astype(np.int32) for size in (height, width))
+    return np.stack(np.meshgrid(ys, xs, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
 def _clean(layers: dict[str, np.ndarray], counts: dict, prefix: str) -> dict[str, np.ndarray]:
@@ -147,7 +157,8 @@ def tile_scene(
 ) -> dict:
     """Task body. inputs: {"reference": render dir, "spp0004": render dir, ...}. `refiner_base`: the
     refining base whose OIDN bases to store (None: none); `clean_targets`: the reference denoised by OIDN
-    is what the rows' targets are cut from (tile.clean_targets)."""
+    is what the rows' targets are cut from (tile.clean_targets). Val scenes are cut into crops that cover
+    the whole frame (grid_origins) instead of the importance-sampled ones."""
 
     def read(name: str) -> dict[str, np.ndarray]:
         return exr.read_exr(inputs[name] / EXR_NAME)
@@ -161,10 +172,12 @@ def tile_scene(
     has_specular = "specular" in reference
     h, w = reference["diffuse"].shape[:2]
 
-    rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
-    origins = choose_crops(
-        importance_map(noisy[spp_inputs[0]], reference), crops_per_scene, patch_size, candidates_per_crop, rng
-    )
+    if split == "val":  # whole frames: what validation scores is then what Table 1 scores on a test frame
+        origins = grid_origins(h, w, patch_size)
+    else:
+        rng = np.random.default_rng([seed, int(scene_hash[:12], 16)])
+        score = importance_map(noisy[spp_inputs[0]], reference)
+        origins = choose_crops(score, crops_per_scene, patch_size, candidates_per_crop, rng)
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
