@@ -473,7 +473,7 @@ def _finish(run: _Run, start: int) -> TrainResult:
         nets = {b: run.best.networks(b, t.shipped_generator, t.critic) for b, t in trainers.items()}
         blend = {b: run.blends[b][s["step"]] for b, s in selected.items() if s["step"] in run.blends.get(b, {})}
         for b, share in blend.items():
-            run.notes.append(f"{b}: ships blended with OIDN, {share:.2f} of its own output (chosen on the val patches)")
+            run.notes.append(f"{b}: ships blended with OIDN, {share:.2f} of its own output (chosen on the val frames)")
         export_weights(
             run.weights_path,
             nets,
