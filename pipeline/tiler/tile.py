@@ -3,9 +3,9 @@
 Crops are chosen once per scene and shared by every spp level, so each noisy row is paired with
 the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
 candidates are drawn uniformly and kept with probability proportional to their relative noise
-plus reference edge strength, with a floor so flat regions still appear. Val scenes are cut on a grid
-that covers each frame instead, so validation scores whole frames as the evaluation does. Splits are assigned per
-scene by a stable hash, never per patch, and never move when the corpus grows. With `refiner_base`,
+plus reference edge strength, with a floor so flat regions still appear. Val scenes are cut on a
+grid that covers each frame instead, so validation scores whole frames as the evaluation does. Splits
+are assigned per scene by a stable hash, never per patch, and never move when the corpus grows. With `refiner_base`,
 OIDN denoises each whole noisy image per branch (as inference does) at the qualities of that base
 and its crops are stored as the rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each
 branch's noise map (from the render's variance buffer: transforms.noise_forward) is stored per row,
@@ -58,8 +58,7 @@ def choose_crops(
 ) -> np.ndarray:
     """(n, 2) crop origins (y, x) drawn without replacement from candidates weighted by mean score."""
     h, w = score.shape
-    if h < patch or w < patch:
-        raise ValueError(f"image {w}x{h} is smaller than the {patch}x{patch} patch size")
+    _check_fits(h, w, patch)
     integral = np.pad(score.astype(np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     k = max(n * candidates_per_crop, n)
     ys = rng.integers(0, h - patch + 1, size=k)
@@ -74,10 +73,14 @@ def choose_crops(
 def grid_origins(height: int, width: int, patch: int) -> np.ndarray:
     """(n, 2) crop origins (y, x) that together cover the whole image: ceil(size / patch) crops per axis,
     evenly spaced from edge to edge (overlapping where the size is not a multiple of the patch)."""
-    if height < patch or width < patch:
-        raise ValueError(f"image {width}x{height} is smaller than the {patch}x{patch} patch size")
+    _check_fits(height, width, patch)
     ys, xs = (np.linspace(0, size - patch, -(-size // patch)).round().astype(np.int32) for size in (height, width))
     return np.stack(np.meshgrid(ys, xs, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _check_fits(height: int, width: int, patch: int) -> None:
+    if height < patch or width < patch:
+        raise ValueError(f"image {width}x{height} is smaller than the {patch}x{patch} patch size")
 
 
 def _clean(layers: dict[str, np.ndarray], counts: dict, prefix: str) -> dict[str, np.ndarray]:
