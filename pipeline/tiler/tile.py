@@ -4,12 +4,12 @@ Crops are chosen once per scene and shared by every spp level, so each noisy row
 the same reference crop. Selection favours informative regions (KPCN-style importance sampling):
 candidates are drawn uniformly and kept with probability proportional to their relative noise
 plus reference edge strength, with a floor so flat regions still appear. Val scenes are cut on a
-grid that covers each frame instead, so validation scores whole frames as the evaluation does. Splits
-are assigned per scene by a stable hash, never per patch, and never move when the corpus grows. With `refiner_base`,
-OIDN denoises each whole noisy image per branch (as inference does) at the qualities of that base
-and its crops are stored as the rows' bases, the input of an admc+oidn refiner. With `noise_maps`, each
-branch's noise map (from the render's variance buffer: transforms.noise_forward) is stored per row,
-what model.noise_input reads.
+grid that covers each frame instead, so validation scores whole frames as the evaluation does.
+Splits are assigned per scene by a stable hash, never per patch, and never move when the corpus
+grows. With `refiner_base`, OIDN denoises each whole noisy image per branch (as inference does) at
+the qualities of that base and its crops are stored as the rows' bases, the input of an admc+oidn
+refiner. With `noise_maps`, each branch's noise map (from the render's variance buffer:
+transforms.noise_forward) is stored per row, what model.noise_input reads.
 """
 
 from __future__ import annotations
