@@ -39,6 +39,34 @@ CHANNELS = {
 REQUIRED = ("diffuse", "albedo", "normal")
 
 
+def oidn_with_weights(color, albedo, normal, weights: bytes) -> np.ndarray:
+    """OIDN (hdr, quality high) running the network weights of a TZA archive: OIDN's C API takes them as the
+    filter's "weights" data, a call pyoidn does not declare, so it is declared here."""
+    from pyoidn.capi import oidn_Capi, oidn_ffi
+    from pyoidn.device import Device
+    from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
+
+    if not getattr(oidn_ffi, "_weights_declared", False):
+        oidn_ffi.cdef("void oidnSetSharedFilterData(OIDNFilter filter, const char* name, void* ptr, size_t size);")
+        oidn_ffi._weights_declared = True
+    height, width = color.shape[:2]
+    output = np.zeros((height, width, 3), np.float32)
+    device = Device()
+    device.commit()
+    blob = oidn_ffi.from_buffer(weights)
+    with Filter(device) as oidn_filter:
+        for name, image in (("color", color), ("albedo", albedo), ("normal", normal), ("output", output)):
+            if image is not None:
+                oidn_filter.set_image(name, np.ascontiguousarray(image, np.float32), OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_bool("hdr", True)
+        oidn_filter.set_quality(OIDN_QUALITY_HIGH)
+        oidn_Capi.oidnSetSharedFilterData(oidn_filter._filter, b"weights", blob, len(weights))
+        oidn_filter.commit()
+        oidn_filter.execute()
+    device.release()
+    return output
+
+
 def read_layers(path: Path) -> dict[str, np.ndarray]:
     """The admc layers an EXR holds, as float32 (H, W, C)."""
     if not Path(path).is_file():
@@ -80,6 +108,7 @@ class ExportedAdmc:
         manifest = Path(folder) / "admc.json"
         if not manifest.is_file():
             raise ValueError(f"{folder}: holds no admc.json (write the folder with `admc-pipe export`)")
+        self.folder = Path(folder)
         self.spec = json.loads(manifest.read_text())
         if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 3:
             raise ValueError(f"{manifest}: not an admc-onnx export of version 3 (export it again with this admc)")
@@ -135,7 +164,8 @@ class ExportedAdmc:
         # 3b. blended with OIDN's output where the weights ship shares (oidn_blend)
         blend = spec.get("oidn_blend")
         if blend:
-            oidn = self.oidn_bases({b: clean[b] for b in branches}, clean, blend["quality"])
+            weights = {b: self.folder / name for b, name in blend.get("weights", {}).items()}
+            oidn = self.oidn_bases({b: clean[b] for b in branches}, clean, blend["quality"], weights)
             for b, share in blend["shares"].items():
                 if b in branches:
                     out[b] = (np.float32(share) * out[b] + np.float32(1 - share) * oidn[b]).astype(np.float32)
@@ -175,15 +205,26 @@ class ExportedAdmc:
         return (np.log1p(std.mean(axis=-1, keepdims=True) / unit) / np.log1p(1.0 / unit)).astype(np.float32)
 
     def oidn_bases(
-        self, images: dict[str, np.ndarray], clean: dict[str, np.ndarray], quality: dict[str, str]
+        self,
+        images: dict[str, np.ndarray],
+        clean: dict[str, np.ndarray],
+        quality: dict[str, str],
+        weights: dict[str, Path] | None = None,
     ) -> dict[str, np.ndarray]:
-        """OIDN on each branch (diffuse with albedo and normal, specular alone) at each branch's quality."""
+        """OIDN on each branch (diffuse with albedo and normal, specular alone) at each branch's quality, with
+        the weights file a branch names (a TZA archive: OIDN fine-tuned with the model) instead of its own."""
         import pyoidn
 
         guides = {"diffuse": (clean["albedo"], clean["normal"]), "specular": (None, None)}
+        weights = weights or {}
         return {
             b: np.nan_to_num(
-                pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]), nan=0.0, posinf=0.0, neginf=0.0
+                oidn_with_weights(image, *guides[b], weights[b].read_bytes())
+                if b in weights
+                else pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]),
+                nan=0.0,
+                posinf=0.0,
+                neginf=0.0,
             ).clip(0.0, None)
             for b, image in images.items()
         }

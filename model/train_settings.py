@@ -64,6 +64,9 @@ class TrainSettings:
     select_metric: str = "relmse"  # what ranks validated steps: relmse | relmse+ssim (selection.py)
     oidn_blend: bool = False  # choose, on the val patches, the share of its own output a model keeps
     # when blended with OIDN's (the rest OIDN's): shipped with the weights
+    oidn_minutes: float = 0.0  # > 0: before its own steps, a fine-tune trains OIDN's networks this long on
+    # the domain (training/oidn_partner.py), the partner the blend then mixes with; 0 = OIDN as it ships
+    oidn_lr: float = 2e-5  # Adam's rate for that (chosen on the val frames of the domains: docs/results/)
     select_z: float = 2.0  # a fine-tuning ships a step only this many standard errors better than
     # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -97,11 +100,20 @@ class TrainSettings:
             "val_patches",
             f"must be >= 1 when val_every > 0, got {self.val_patches!r}",
         )
-        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "body_lr_factor", "lr_gamma", "l1_floor"):
+        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "oidn_lr", "body_lr_factor", "lr_gamma", "l1_floor"):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
         require(isinstance(self.distill_from, str), "distill_from", f'must be a path or "", got {self.distill_from!r}')
-        for name in ("l1_weight", "ssim_weight", "adv_weight", "gp_weight", "select_z", "distill_weight", "minutes"):
+        for name in (
+            "l1_weight",
+            "ssim_weight",
+            "adv_weight",
+            "gp_weight",
+            "select_z",
+            "distill_weight",
+            "minutes",
+            "oidn_minutes",
+        ):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value >= 0, name, f"must be >= 0, got {value!r}")
         require(isinstance(self.ema, (int, float)) and 0 <= self.ema < 1, "ema", f"must be in [0, 1), got {self.ema!r}")

@@ -136,12 +136,17 @@ def _half(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def export_weights(
-    path: str | os.PathLike, branches: dict[str, dict[str, dict[str, torch.Tensor]]], metadata: dict[str, Any]
+    path: str | os.PathLike,
+    branches: dict[str, dict[str, dict[str, torch.Tensor]]],
+    metadata: dict[str, Any],
+    oidn_networks: dict[str, dict[str, torch.Tensor]] | None = None,
 ) -> None:
     """Write {branch: {"generator": state_dict, "critic": state_dict}} as float16, atomically.
 
     `metadata` (model settings, transform spec, patch size, provenance) is stored alongside and
     returned by load_weights; it must be plain values (dicts, lists, str, numbers, bools).
+    `oidn_networks` ({branch: state_dict}: OIDN's networks fine-tuned beside them, train.oidn_minutes) go
+    along, float16 too.
     """
     for name, nets in branches.items():
         missing = {"generator", "critic"} - set(nets)
@@ -154,6 +159,7 @@ def export_weights(
             "format_version": FORMAT_VERSION,
             "metadata": metadata,
             "branches": {name: {net: _half(sd) for net, sd in nets.items()} for name, nets in branches.items()},
+            **({OIDN_NETWORKS: {b: _half(sd) for b, sd in oidn_networks.items()}} if oidn_networks else {}),
         },
     )
 
@@ -177,6 +183,24 @@ def read_blend(path: str | os.PathLike) -> dict[str, float]:
     if not (isinstance(blend, dict) and all(isinstance(w, (int, float)) and 0 <= w <= 1 for w in blend.values())):
         raise CheckpointError(f"{path}: its {OIDN_BLEND} metadata {blend!r} is not shares in [0, 1] per branch")
     return {str(b): float(w) for b, w in blend.items()}
+
+
+OIDN_NETWORKS = "oidn_networks"
+"""The weights file's key of OIDN's networks fine-tuned with the model (train.oidn_minutes): the blend's partner."""
+
+
+def read_oidn_networks(path: str | os.PathLike) -> dict[str, dict[str, torch.Tensor]]:
+    """{branch: OIDN network state dict} a weights file ships, or a checkpoint's partner holds (its best
+    validated step's); {} where OIDN was not fine-tuned (the blend then runs the OIDN library)."""
+    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    if obj["format"] == WEIGHTS_FORMAT:
+        nets = obj.get(OIDN_NETWORKS, {})
+    else:
+        partner = obj.get("partner") or {}
+        nets = {b: partner.get("best", {}).get(b, state) for b, state in partner.get("nets", {}).items()}
+    if not (isinstance(nets, dict) and all(isinstance(state, dict) for state in nets.values())):
+        raise CheckpointError(f"{path}: its {OIDN_NETWORKS} entry is not a state dict per branch")
+    return nets
 
 
 def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:

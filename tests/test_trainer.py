@@ -17,6 +17,7 @@ from admc.model.nets.settings import MODES, ModelSettings
 from admc.model.training.branch import BranchTrainer
 from admc.model.training.data import load_rows
 from admc.model.train_settings import TrainSettings
+from admc.errors import TrainingError
 from admc.model.training.trainer import TrainingDiverged, train
 from admc.stores.checkpoints import (
     CheckpointError,
@@ -265,6 +266,54 @@ def test_an_oidn_blend_is_chosen_on_validation_and_shipped_with_the_weights(stor
     assert load_denoiser(result.weights).oidn_blend == shipped
     assert load_denoiser(result.weights, oidn_blend=False).oidn_blend == {}
     assert read_blend(result.checkpoint) == {}  # a checkpoint carries no blend: its weights file ships it
+
+
+def test_a_fine_tuned_oidn_partner_is_trained_first_selected_on_validation_and_shipped(store, tmp_path, capsys):
+    """train.oidn_minutes: OIDN's networks train before admc's steps, start as the library's weights (step 0's
+    validation), keep their best validated step, ride in the weights file, and the denoiser blends with them."""
+    from admc.model.inference.denoiser import load_denoiser
+    from admc.model.nets.oidn_unet import oidn_unet
+    from admc.stores.checkpoints import read_blend, read_oidn_networks
+
+    settings = dataclasses.replace(SETTINGS, steps=2, val_every=2, oidn_blend=True, oidn_minutes=0.02)
+    result = train(store, tmp_path / "partner", settings, TINY, progress=True)
+    err = capsys.readouterr().err
+    assert "OIDN fine-tune step 0 diffuse" in err and "with fine-tuned OIDN, relMSE" in err
+    shipped = read_oidn_networks(result.weights)
+    assert set(shipped) == {"diffuse", "specular"}
+    for branch, state in shipped.items():
+        assert state["enc_conv0.weight"].dtype == torch.float16
+        note = next(n for n in result.notes if n.startswith(f"{branch}: OIDN's network ships step"))
+        library = oidn_unet(branch).state_dict()
+        if " step 0 of " in note:  # nothing beat OIDN's own weights on the val rows: they ship
+            assert all(torch.equal(state[k], v.half()) for k, v in library.items())
+        else:
+            assert any(not torch.equal(state[k], v.half()) for k, v in library.items())
+    denoiser = load_denoiser(result.weights)
+    assert denoiser.oidn_blend == read_blend(result.weights) and set(denoiser.oidn_partner) == set(shipped)
+    assert "OIDN fine-tuned with it" in denoiser.device
+
+
+def test_a_resumed_run_keeps_its_fine_tuned_oidn_partner(store, tmp_path):
+    """The partner's state rides in the checkpoint: a resumed run does not train OIDN again and ships the
+    same networks."""
+    from admc.stores.checkpoints import read_oidn_networks
+
+    settings = dataclasses.replace(SETTINGS, steps=2, val_every=2, oidn_blend=True, oidn_minutes=0.02)
+    first = train(store, tmp_path / "run", settings, TINY, progress=False)
+    shipped = read_oidn_networks(first.weights)
+    assert read_oidn_networks(first.checkpoint).keys() == shipped.keys()
+    second = train(store, tmp_path / "run", dataclasses.replace(settings, steps=4), TINY, resume=True, progress=False)
+    assert second.step == 4 and not any("fine-tuning OIDN's networks first" in n for n in second.notes)
+    again = read_oidn_networks(second.weights)
+    assert all(torch.equal(shipped[b][k], again[b][k]) for b in shipped for k in shipped[b])
+
+
+def test_oidn_minutes_without_a_blend_is_refused_before_training(store, tmp_path):
+    settings = dataclasses.replace(SETTINGS, oidn_minutes=1.0)
+    with pytest.raises(TrainingError, match=r"train.oidn_minutes: .*train.oidn_blend = true"):
+        train(store, tmp_path / "refused", settings, TINY, progress=False)
+    assert not (tmp_path / "refused" / "checkpoint.pt").exists()
 
 
 def test_the_moving_average_follows_the_weights_with_a_ramped_decay(store):

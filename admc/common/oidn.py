@@ -1,6 +1,7 @@
 """Intel Open Image Denoise, called from one place: the OIDN bases of admc+oidn and the OIDN baseline.
 
-Both go through `denoise`, so they run OIDN the same way and differ only in the quality each asks for.
+Both go through `denoise`, so they run OIDN the same way and differ only in the quality each asks for;
+`denoise_with_weights` runs OIDN's network with other weights (OIDN fine-tuned on a domain, train.oidn_minutes).
 """
 
 from __future__ import annotations
@@ -32,3 +33,67 @@ def check_quality(quality: str) -> str:
 def _host(image):
     """NumPy images as OIDN's CPU device reads them; None and torch tensors as they are."""
     return np.ascontiguousarray(image, dtype=np.float32) if isinstance(image, np.ndarray) else image
+
+
+def denoise_with_weights(color, albedo=None, normal=None, *, weights: bytes):
+    """`denoise` at quality "high" with OIDN's network running other weights: `weights` is a TZA archive of
+    its U-Net (stores/oidn_archives.py `write_archive`), e.g. one fine-tuned on a domain. OIDN's C API takes
+    it as the filter's "weights" data; pyoidn does not declare that call, so it is declared here."""
+    from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
+
+    color = _host(color)
+    height, width = color.shape[:2]
+    output = np.zeros_like(color)
+    device = _device()
+    blob = _ffi().from_buffer(weights)  # OIDN reads it while the filter commits
+    with Filter(device) as oidn_filter:
+        for name, image in (("color", color), ("albedo", _host(albedo)), ("normal", _host(normal)), ("output", output)):
+            if image is not None:
+                oidn_filter.set_image(name, image, OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_bool("hdr", True)
+        oidn_filter.set_quality(OIDN_QUALITY_HIGH)
+        _capi().oidnSetSharedFilterData(oidn_filter._filter, b"weights", blob, len(weights))
+        oidn_filter.commit()
+        oidn_filter.execute()
+        _raise_device_error(device)
+    return output
+
+
+_DEVICE = None
+
+
+def _ffi():
+    from pyoidn.capi import oidn_ffi
+
+    if not getattr(oidn_ffi, "_admc_filter_data", False):
+        oidn_ffi.cdef(
+            "void oidnSetSharedFilterData(OIDNFilter filter, const char* name, void* hostPtr, size_t byteSize);"
+        )
+        oidn_ffi._admc_filter_data = True
+    return oidn_ffi
+
+
+def _capi():
+    from pyoidn.capi import oidn_Capi
+
+    _ffi()
+    return oidn_Capi
+
+
+def _device():
+    """One committed CPU device per process, as pyoidn keeps its own."""
+    global _DEVICE
+    if _DEVICE is None:
+        from pyoidn.device import Device
+
+        device = Device()
+        device.commit()
+        _raise_device_error(device)
+        _DEVICE = device
+    return _DEVICE
+
+
+def _raise_device_error(device) -> None:
+    from pyoidn.denoise import _check_error
+
+    _check_error(device, "denoising with fine-tuned weights")

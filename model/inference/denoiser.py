@@ -43,6 +43,7 @@ from ..transforms import (
     specular_noise,
 )
 from .engines import OnnxGenerator, check_engine, default_precision, onnx_generators, resolve_engine, run_together
+from .fine_tuned_oidn import partner_archives, partner_bases
 from .exposure import DARK_GAIN, dark_region, dark_weights, exposure_gain
 from .input_layers import sanitize_layers
 from .oidn_base import oidn_bases
@@ -146,8 +147,13 @@ class FullImageDenoiser:
             raise ValueError(
                 "FullImageDenoiser: an OIDN blend is for admc's own output (base 'noisy'), not a refiner's"
             )
+        self.oidn_partner = (
+            partner_archives(options.oidn_partner, options.source or "weights")
+            if self.oidn_blend and options.oidn_partner
+            else None
+        )
         if self.oidn_blend:
-            self.device += ", blended with OIDN"
+            self.device += ", blended with " + ("OIDN fine-tuned with it" if self.oidn_partner else "OIDN")
 
     def _prepare(self, generator: nn.Module) -> nn.Module:
         return generator.to(self.torch_device, memory_format=MEMORY_FORMAT).eval()
@@ -205,7 +211,8 @@ class FullImageDenoiser:
         base_seconds = sum(p.base_seconds for p in passes)
         if self.oidn_blend:
             blend_start = time.perf_counter()
-            diffuse, specular = _blend_with_oidn(clean, diffuse, specular, run_specular, self.oidn_blend)
+            partner = (self.oidn_partner, self.ensemble) if self.oidn_partner else None
+            diffuse, specular = _blend_with_oidn(clean, diffuse, specular, run_specular, self.oidn_blend, partner)
             base_seconds += time.perf_counter() - blend_start
         resolved_share = 0.0
         if self.keep_resolved:
@@ -368,11 +375,16 @@ def _blend_with_oidn(
     specular: np.ndarray | None,
     run_specular: bool,
     shares: dict[str, float],
+    partner: tuple[dict, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Each branch's output blended with OIDN's per-branch output (high, as a refiner's base: oidn_base.py):
-    share * output + (1 - share) * OIDN, the share a fine-tune chose on its val patches (train.oidn_blend)."""
+    share * output + (1 - share) * OIDN, the share a fine-tune chose on its val patches (train.oidn_blend).
+    `partner` (TZA archives, ensemble): OIDN fine-tuned with the weights, run in place of its own networks."""
     branches = ("diffuse", "specular")[: 1 + run_specular]
-    oidn = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)}, "oidn")
+    if partner:
+        oidn = partner_bases(partner[0], clean, branches, partner[1])
+    else:
+        oidn = oidn_bases({name: clean[name] for name in ("albedo", "normal", *branches)}, "oidn")
     out = {"diffuse": diffuse, "specular": specular}
     for branch in branches:
         share = np.float32(shares.get(branch, 1.0))
@@ -430,7 +442,7 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
     Refuses weights trained on other transforms than this code applies (their outputs would be
     inverted wrongly); a file without a specular branch denoises diffuse only.
     """
-    from admc.stores.checkpoints import CheckpointError, load_network, read_blend, read_networks
+    from admc.stores.checkpoints import CheckpointError, load_network, read_blend, read_networks, read_oidn_networks
 
     from ..nets.settings import ModelSettings
     from ..transforms import transform_spec
@@ -465,5 +477,6 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
             name=options.name or COLUMN_NAMES[config.base],
             source=str(path),
             oidn_blend=read_blend(path) if oidn_blend else None,
+            oidn_partner=(read_oidn_networks(path) or None) if oidn_blend else None,
         ),
     )

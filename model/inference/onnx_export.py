@@ -33,7 +33,8 @@ MANIFEST_NAME = "admc.json"
 FORMAT = "admc-onnx"
 FORMAT_VERSION = 3
 """2 added `missing`, `variance`, `exposure` and `keep_resolved`: what `admc-pipe denoise` does around the graphs;
-3 added `oidn_blend` (present where the weights ship one: train.oidn_blend)."""
+3 added `oidn_blend` (present where the weights ship one: train.oidn_blend), with `weights` where the blend's OIDN
+runs weights fine-tuned with the model (train.oidn_minutes)."""
 
 
 INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "base": 3}
@@ -101,6 +102,7 @@ def export_manifest(
     log_max: dict[str, float],
     missing: dict[str, float],
     oidn_blend: dict[str, float] | None = None,
+    oidn_weights: dict[str, str] | None = None,
 ) -> dict:
     """What a renderer must run around the graphs, JSON-ready (see docs/engines.md); `missing` is the constant
     a layer the input lacks is filled with (depth, coverage). examples/onnx_denoise.py follows it and
@@ -172,6 +174,15 @@ def export_manifest(
                     "(1 - share) OIDN(clean branch) at that branch's quality, diffuse with the sanitised albedo and "
                     "normal as guides, specular alone, both at the input's own exposure (hdr), negatives and "
                     "non-finite values set to 0",
+                    **(
+                        {
+                            "weights": dict(oidn_weights),
+                            "weights_rule": "OIDN runs each branch with the weights in that file (TZA, its own "
+                            "format: the filter's 'weights' data) at quality high, instead of its built-in ones",
+                        }
+                        if oidn_weights
+                        else {}
+                    ),
                 }
             }
             if oidn_blend

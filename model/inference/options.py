@@ -39,6 +39,8 @@ class DenoiserOptions:
       specular_var) and is skipped without them.
     - `oidn_blend`: {branch: share}: each branch's output becomes share x its own + (1 - share) x OIDN's per-branch
       output (what a fine-tune with train.oidn_blend ships; None: the networks' output alone).
+    - `oidn_partner`: {branch: state dict} of OIDN's networks fine-tuned with the weights (train.oidn_minutes):
+      the blend takes their output in place of the OIDN library's (None: the library's).
     """
 
     device: str | torch.device = "cpu"
@@ -54,6 +56,7 @@ class DenoiserOptions:
     engine: str = "torch"
     keep_resolved: bool = False
     oidn_blend: dict[str, float] | None = None
+    oidn_partner: dict[str, dict] | None = None
 
     def __post_init__(self) -> None:
         if self.tile is not None and self.tile < 1:

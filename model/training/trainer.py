@@ -32,6 +32,7 @@ from admc.stores.checkpoints import (
     WEIGHTS_NAME,
     export_weights,
     load_checkpoint,
+    read_oidn_networks,
     save_checkpoint,
 )
 from admc.stores.patches import PatchReader, PatchStoreError
@@ -43,6 +44,7 @@ from .branch import BranchTrainer
 from .data import branch_seed, load_rows, train_loader
 from .distributed import RankFailed, Ranks, agree, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
+from .oidn_partner import Partner, finetune_partner, start_partner
 from .progress import ProgressWindow
 from .resume import check_resumable, load_init, rng_state, say_precision_change, seed_everything, set_rng_state
 from .selection import BestNetworks, selection_values
@@ -107,6 +109,7 @@ def train(
         raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
     check_world(settings, model, current().world)
     run = _Run(Path(store_path), Path(out_dir), settings, model, stage, init_from, progress)
+    _check_partner(run)
     checkpoint, init_nets, transform, source = _starting_point(run, resume)
     readers = _open_train(run, transform, source)
     if resume:
@@ -120,6 +123,8 @@ def train(
     start = _restore(run, checkpoint, init_nets)
     for trainer in run.trainers.values():
         broadcast_modules(trainer.generator, trainer.critic, *[m for m in [trainer.average] if m is not None])
+    if settings.oidn_minutes > 0:
+        _fine_tune_oidn(run, readers, val, checkpoint)
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
 
@@ -170,6 +175,7 @@ class _Run:
     precision: str = ""
     metrics: MetricsLog | None = None
     step: int = 0  # the last step run (or restored)
+    partner: Partner | None = None  # OIDN's networks fine-tuned first (train.oidn_minutes)
 
     def __post_init__(self) -> None:
         self.checkpoint_path = self.out_dir / CHECKPOINT_NAME
@@ -217,6 +223,7 @@ class _Run:
             "seconds": self.clock.seconds(),
             "start_scores": self.start_scores,
             "blends": self.blends,
+            "partner": self.partner.state_dict() if self.partner else None,
         }
 
 
@@ -324,6 +331,39 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
     return 0
 
 
+def _check_partner(run: _Run) -> None:
+    """Refuse train.oidn_minutes where its partner has nothing to blend with, before anything runs."""
+    if run.settings.oidn_minutes <= 0:
+        return
+    if not run.settings.oidn_blend or run.model.base != "noisy":
+        raise TrainingError(
+            "train.oidn_minutes: fine-tunes OIDN as the partner admc's output is blended with; it needs "
+            f"train.oidn_blend = true and model.base = 'noisy' (got {run.settings.oidn_blend}, {run.model.base!r})"
+        )
+    if run.ranks.world > 1:
+        raise TrainingError("train.oidn_minutes: OIDN's fine-tune runs in one process; leave --nproc out")
+
+
+def _fine_tune_oidn(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], checkpoint: dict | None) -> None:
+    """The partner phase (oidn_partner.py), before admc's steps and outside train.minutes; its state rides in
+    the checkpoint at step 0, so an interrupted phase resumes."""
+    init = read_oidn_networks(run.init_from) if run.init_from is not None else None
+    run.partner = start_partner(list(readers), run.settings, init, run.device)
+    if checkpoint is not None and checkpoint.get("partner"):
+        run.partner.load_state_dict(checkpoint["partner"])
+    if not run.partner.done:
+        run.say(f"fine-tuning OIDN's networks first: train.oidn_minutes = {run.settings.oidn_minutes:g}")
+
+    def save() -> None:
+        if run.ranks.lead:
+            save_checkpoint(run.checkpoint_path, {**run.state(0), "seconds": 0.0})
+
+    before = run.clock.before
+    finetune_partner(run.partner, run.settings, readers, val, run.device, save, run.show, run.progress)
+    run.clock = Clock(run.settings.minutes)  # admc's budget starts now
+    run.clock.before = before
+
+
 def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
     """Validate every branch, log it, show it against the start and OIDN, and offer its networks to the
     selection of the shipped weights."""
@@ -337,9 +377,10 @@ def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
         run.start_scores.setdefault(b, scores)  # step 0's (a checkpoint carries them over a resume)
         run.validation[b] = {**scores, **run.baselines[b], **_ratios(scores, run.start_scores[b], run.baselines[b])}
         if run.settings.oidn_blend and "oidn" in rows:
-            share, blended = best_blend(output, rows, b)
+            share, blended = best_blend(output, rows, b, run.partner.val_outputs.get(b) if run.partner else None)
             run.blends.setdefault(b, {})[step] = share
             run.validation[b].update(
+                blend_partner=float(run.partner is not None),
                 blend_share=share,
                 blend_relmse=blended,
                 blend_relmse_vs_oidn=blended / max(run.baselines[b]["oidn_relmse"], 1e-12),
@@ -374,7 +415,8 @@ def _comparison(validation: dict[str, float]) -> str:
         parts.append(f"{label} {validation[k]:.4g} ({', '.join(vs)})")
     if "blend_share" in validation:
         parts.append(
-            f"blended {validation['blend_share']:.2f} : {1 - validation['blend_share']:.2f} with OIDN, relMSE "
+            f"blended {validation['blend_share']:.2f} : {1 - validation['blend_share']:.2f} with "
+            f"{'fine-tuned ' if validation.get('blend_partner') else ''}OIDN, relMSE "
             f"{validation['blend_relmse']:.4g} ({validation['blend_relmse_vs_oidn']:.3f}x OIDN)"
         )
     return "; ".join(parts)
@@ -472,8 +514,13 @@ def _finish(run: _Run, start: int) -> TrainResult:
     if run.ranks.lead:
         nets = {b: run.best.networks(b, t.shipped_generator, t.critic) for b, t in trainers.items()}
         blend = {b: run.blends[b][s["step"]] for b, s in selected.items() if s["step"] in run.blends.get(b, {})}
+        partner = "OIDN fine-tuned here" if run.partner else "OIDN"
         for b, share in blend.items():
-            run.notes.append(f"{b}: ships blended with OIDN, {share:.2f} of its own output (chosen on the val frames)")
+            run.notes.append(
+                f"{b}: ships blended with {partner}, {share:.2f} of its own output (chosen on the val frames)"
+            )
+        if run.partner:
+            run.notes.extend(_partner_notes(run.partner))
         export_weights(
             run.weights_path,
             nets,
@@ -488,6 +535,7 @@ def _finish(run: _Run, start: int) -> TrainResult:
                 "precision": run.precision,
                 **({OIDN_BLEND: blend} if blend else {}),
             },
+            oidn_networks=run.partner.shipped() if run.partner else None,
         )
     return TrainResult(
         out_dir=run.out_dir,
@@ -503,3 +551,15 @@ def _finish(run: _Run, start: int) -> TrainResult:
         selected=selected,
         rank=run.ranks.rank,
     )
+
+
+def _partner_notes(partner: Partner) -> list[str]:
+    """What OIDN's fine-tune ships per branch: its step and val relMSE against OIDN's own weights."""
+    notes = []
+    for b, scores in partner.scores.items():
+        step = partner.best_step.get(b, partner.step)
+        notes.append(
+            f"{b}: OIDN's network ships step {step} of {partner.step} of its fine-tune "
+            f"(val relMSE {scores[step] / scores[0]:.3f}x OIDN's own weights)"
+        )
+    return notes

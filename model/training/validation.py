@@ -66,12 +66,15 @@ def validate(
     )
 
 
-def best_blend(output: Tensor, val: dict[str, Tensor], branch: str) -> tuple[float, float]:
+def best_blend(
+    output: Tensor, val: dict[str, Tensor], branch: str, partner: Tensor | None = None
+) -> tuple[float, float]:
     """(share, mean relMSE) of the blend share * output + (1 - share) * OIDN's output with the lowest mean
     relMSE on the val patches, the share from BLEND_SHARES (1: the output alone). Two denoisers whose errors
-    are only partly correlated average to less error than either: what train.oidn_blend ships."""
+    are only partly correlated average to less error than either: what train.oidn_blend ships. `partner`:
+    the linear output of OIDN's networks fine-tuned on the domain (oidn_partner.py), in place of the store's."""
     ref = to_linear(val["reference"], val["features"], branch)
-    oidn = to_linear(val["oidn"], val["features"], branch)
+    oidn = partner if partner is not None else to_linear(val["oidn"], val["features"], branch)
     means = torch.stack([relmse_torch(w * output + (1 - w) * oidn, ref).mean() for w in BLEND_SHARES.double()])
     best = int(torch.argmin(means))
     return round(float(BLEND_SHARES[best]), 2), float(means[best])

@@ -17,7 +17,9 @@ class ExportError(AdmcError, ValueError):
 
 
 def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
-    """Write `out_dir`/{branch}.onnx per branch and `out_dir`/admc.json; returns their paths.
+    """Write `out_dir`/{branch}.onnx per branch and `out_dir`/admc.json; returns their paths. Weights that
+    ship OIDN fine-tuned with them (train.oidn_minutes) also give `out_dir`/oidn-{branch}.tza: OIDN's own
+    weight format, which any OIDN 2 filter takes as its "weights" (the blend's partner).
 
     Each file is published atomically, the JSON last, so a folder with an admc.json holds the graphs it
     names. Other files in `out_dir` are left alone."""
@@ -27,11 +29,18 @@ def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
     denoiser = load_denoiser(weights)  # checks the file: format, transforms, architecture
     generators = denoiser.generators
     written = [out_dir / f"{branch}.onnx" for branch in generators]
+    partner = {branch: f"oidn-{branch}.tza" for branch in denoiser.oidn_partner or {}}
     try:
         for path, generator in zip(written, generators.values()):
             with publishing(path) as tmp:
                 export_generator(generator, tmp)
-        manifest = export_manifest(generators, transform_spec(), LOG_MAX, MISSING_LAYERS, denoiser.oidn_blend)
+        for branch, name in partner.items():
+            with publishing(out_dir / name) as tmp:
+                tmp.write_bytes(denoiser.oidn_partner[branch])
+            written.append(out_dir / name)
+        manifest = export_manifest(
+            generators, transform_spec(), LOG_MAX, MISSING_LAYERS, denoiser.oidn_blend, partner or None
+        )
         write_json(out_dir / MANIFEST_NAME, {**manifest, "weights": Path(weights).name})
     except OSError as exc:
         raise ExportError(f"{out_dir}: cannot write the export there ({exc.strerror or exc})") from None
