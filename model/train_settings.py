@@ -126,6 +126,12 @@ class TrainSettings:
         )
         require(isinstance(self.adversarial, bool), "adversarial", f"must be true or false, got {self.adversarial!r}")
         require(isinstance(self.oidn_blend, bool), "oidn_blend", f"must be true or false, got {self.oidn_blend!r}")
+        require(
+            self.oidn_minutes == 0 or self.oidn_blend,
+            "oidn_minutes",
+            f"is {self.oidn_minutes:g}: it fine-tunes OIDN as the partner of the OIDN blend, but oidn_blend is "
+            "false; set oidn_blend = true, or oidn_minutes = 0",
+        )
         require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
         require(

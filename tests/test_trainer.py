@@ -309,11 +309,15 @@ def test_a_resumed_run_keeps_its_fine_tuned_oidn_partner(store, tmp_path):
     assert all(torch.equal(shipped[b][k], again[b][k]) for b in shipped for k in shipped[b])
 
 
-def test_oidn_minutes_without_a_blend_is_refused_before_training(store, tmp_path):
+def test_oidn_minutes_without_a_blend_or_in_several_processes_is_refused(store, tmp_path):
+    from admc.model.training.distributed import check_world
+
     settings = dataclasses.replace(SETTINGS, oidn_minutes=1.0)
-    with pytest.raises(TrainingError, match=r"train.oidn_minutes: .*train.oidn_blend = true"):
+    with pytest.raises(ValueError, match=r"oidn_minutes: is 1: .* oidn_blend is false"):
         train(store, tmp_path / "refused", settings, TINY, progress=False)
     assert not (tmp_path / "refused" / "checkpoint.pt").exists()
+    with pytest.raises(TrainingError, match=r"'train.oidn_minutes': OIDN's fine-tune runs in one process, not 2"):
+        check_world(dataclasses.replace(settings, oidn_blend=True), TINY, 2)
 
 
 def test_the_moving_average_follows_the_weights_with_a_ramped_decay(store):

@@ -242,3 +242,8 @@ def check_world(settings: TrainSettings, model: ModelSettings, world: int) -> No
             'training processes\' slices of the batch, not over the whole batch; use "layer" '
             '(the default) or "none", or train in one process'
         )
+    if world > 1 and settings.oidn_minutes > 0 and model.base == "noisy":
+        raise TrainingError(
+            f"config key 'train.oidn_minutes': OIDN's fine-tune runs in one process, not {world}; "
+            "train in one process, or set it to 0"
+        )

@@ -109,7 +109,6 @@ def train(
         raise TrainingError(f"stage: {stage!r} is not one of {STAGES}")
     check_world(settings, model, current().world)
     run = _Run(Path(store_path), Path(out_dir), settings, model, stage, init_from, progress)
-    _check_partner(run)
     checkpoint, init_nets, transform, source = _starting_point(run, resume)
     readers = _open_train(run, transform, source)
     if resume:
@@ -123,8 +122,13 @@ def train(
     start = _restore(run, checkpoint, init_nets)
     for trainer in run.trainers.values():
         broadcast_modules(trainer.generator, trainer.critic, *[m for m in [trainer.average] if m is not None])
-    if settings.oidn_minutes > 0:
+    if settings.oidn_minutes > 0 and model.base == "noisy":
         _fine_tune_oidn(run, readers, val, checkpoint)
+    elif settings.oidn_minutes > 0:
+        run.say(
+            f"train.oidn_minutes: skipped for a refiner (model.base = {model.base!r}): it refines OIDN's own "
+            "output; OIDN's fine-tune is the partner of admc's blend"
+        )
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
 
@@ -329,19 +333,6 @@ def _restore(run: _Run, checkpoint: dict | None, init_nets: dict | None) -> int:
                 raise TrainingError(f"{run.init_from}: has no {b} branch to fine-tune")
             trainer.load_networks(init_nets[b]["generator"], init_nets[b]["critic"], str(run.init_from))
     return 0
-
-
-def _check_partner(run: _Run) -> None:
-    """Refuse train.oidn_minutes where its partner has nothing to blend with, before anything runs."""
-    if run.settings.oidn_minutes <= 0:
-        return
-    if not run.settings.oidn_blend or run.model.base != "noisy":
-        raise TrainingError(
-            "train.oidn_minutes: fine-tunes OIDN as the partner admc's output is blended with; it needs "
-            f"train.oidn_blend = true and model.base = 'noisy' (got {run.settings.oidn_blend}, {run.model.base!r})"
-        )
-    if run.ranks.world > 1:
-        raise TrainingError("train.oidn_minutes: OIDN's fine-tune runs in one process; leave --nproc out")
 
 
 def _fine_tune_oidn(run: _Run, readers: dict[str, PatchReader], val: dict[str, dict], checkpoint: dict | None) -> None:
