@@ -10,6 +10,8 @@ autoexposure, through the PU transfer function normalised at 65504; albedo in [0
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -165,7 +167,17 @@ class OidnUNet(nn.Module):
 
 
 def oidn_unet(branch: str) -> OidnUNet:
-    """The branch's network with the weights the installed OIDN runs at quality "high" (see module doc).
+    """A fresh copy of the branch's network with the weights the installed OIDN runs at quality "high" (see
+    module doc)."""
+    net = OidnUNet(INPUT_CHANNELS[branch])
+    net.load_state_dict({name: torch.from_numpy(value) for name, value in _library_weights(branch).items()})
+    return net
+
+
+@functools.cache
+def _library_weights(branch: str) -> dict[str, np.ndarray]:
+    """The archive in OIDN's library that its `branch` filter runs, found once per process (reading the
+    library and trying its archives takes about 0.3 s, and every partner, test and export asks for it).
 
     The library does not name its archives, so each one of the right shape is run on a probe image beside
     OIDN itself and the one that reproduces it is taken. It must be within 3% on average: on the probe a wrong
@@ -195,7 +207,7 @@ def oidn_unet(branch: str) -> OidnUNet:
             out = net.eval().denoise(*tensors[:1], exposure, *tensors[1:])[0].numpy().transpose(1, 2, 0)
         error = float(np.abs(out - expected).mean()) / scale
         if error < best_error:
-            best, best_error = net, error
+            best, best_error = archive, error
     if best is None or best_error > MATCH_TOLERANCE:
         raise ArchiveError(
             f"no weight archive in OIDN's library reproduces its {branch} filter "

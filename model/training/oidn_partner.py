@@ -14,7 +14,6 @@ The phase is resumable: its state rides in the run's checkpoint (step 0 of admc'
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -28,6 +27,7 @@ from admc.stores.patches import PatchReader
 
 from ..nets.oidn_unet import OidnUNet, batch_exposure, network_input, oidn_unet, transfer
 from ..train_settings import TrainSettings
+from .clock import Clock
 from .data import branch_seed, train_loader
 from .validation import to_linear
 
@@ -100,7 +100,7 @@ def finetune_partner(
     """Train `partner` until train.oidn_minutes of its own time are spent (across resumes), validating every
     train.val_every steps and at the end; `save` is called after each validation (a checkpoint). Fills
     partner.val_outputs with the shipped networks' output on the val rows."""
-    budget, started, before = 60.0 * settings.oidn_minutes, time.perf_counter(), partner.seconds
+    clock = Clock(settings.oidn_minutes, before=partner.seconds)
     if not partner.done:
         streams = {
             b: iter(
@@ -116,7 +116,13 @@ def finetune_partner(
         }
         if partner.step == 0:
             _validate(partner, val, settings.batch_size, device, show)
-        bar = tqdm(total=round(budget), initial=round(before), unit="s", desc="OIDN fine-tune", disable=not progress)
+        bar = tqdm(
+            total=round(clock.budget),
+            initial=round(clock.before),
+            unit="s",
+            desc="OIDN fine-tune",
+            disable=not progress,
+        )
         while True:
             for b, net in partner.nets.items():
                 x, target = _pairs(next(streams[b]), b, device)
@@ -125,10 +131,10 @@ def finetune_partner(
                 loss.backward()
                 partner.optimizer.step()
             partner.step += 1
-            partner.seconds = before + time.perf_counter() - started
-            bar.update(min(round(partner.seconds), round(budget)) - bar.n)
+            partner.seconds = clock.seconds()
+            bar.update(min(round(partner.seconds), round(clock.budget)) - bar.n)
             bar.set_postfix(step=partner.step, loss=f"{loss.item():.4g}", refresh=False)
-            spent = partner.seconds >= budget
+            spent = clock.spent()
             if spent or (settings.val_every and partner.step % settings.val_every == 0):
                 _validate(partner, val, settings.batch_size, device, show)
                 partner.done = spent
@@ -150,13 +156,12 @@ def _pairs(batch: dict[str, Tensor], branch: str, device: torch.device) -> tuple
     noisy = to_linear(batch["noisy"].to(device), features, branch).float()
     reference = to_linear(batch["reference"].to(device), features, branch).float()
     exposure = batch_exposure(noisy)
-    return _input(noisy, features, exposure, branch), transfer(reference * exposure)
+    return network_input(noisy, exposure, *_guides(features, branch)), transfer(reference * exposure)
 
 
-def _input(noisy: Tensor, features: Tensor, exposure: Tensor, branch: str) -> Tensor:
-    if branch == "diffuse":
-        return network_input(noisy, exposure, features[:, ALBEDO], features[:, NORMAL] * 2 - 1)
-    return network_input(noisy, exposure)
+def _guides(features: Tensor, branch: str) -> tuple[Tensor, ...]:
+    """The diffuse network's albedo and normal (in [-1, 1]) from a batch's features; none for the specular one."""
+    return (features[:, ALBEDO], features[:, NORMAL] * 2 - 1) if branch == "diffuse" else ()
 
 
 @torch.no_grad()
@@ -168,9 +173,7 @@ def _run(net: OidnUNet, rows: dict[str, Tensor], branch: str, batch_size: int, d
     for i in range(0, len(rows["noisy"]), batch_size):
         features = rows["features"][i : i + batch_size].to(device)
         noisy = to_linear(rows["noisy"][i : i + batch_size].to(device), features, branch).float()
-        exposure = batch_exposure(noisy)
-        albedo_normal = (features[:, ALBEDO], features[:, NORMAL] * 2 - 1) if branch == "diffuse" else ()
-        outputs.append(net.denoise(noisy, exposure, *albedo_normal).double().cpu())
+        outputs.append(net.denoise(noisy, batch_exposure(noisy), *_guides(features, branch)).double().cpu())
     net.train(was_training)
     return torch.cat(outputs)
 

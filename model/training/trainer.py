@@ -17,7 +17,6 @@ import dataclasses
 import logging
 import os
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from ..nets.settings import ModelSettings
 from ..precision import precision_name, resolve_device
 from ..transforms import transform_spec
 from .branch import BranchTrainer
+from .clock import Clock
 from .data import branch_seed, load_rows, train_loader
 from .distributed import RankFailed, Ranks, agree, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
@@ -131,27 +131,6 @@ def train(
         )
     _loop(run, readers, val, start, resume)
     return _finish(run, start)
-
-
-class Clock:
-    """The wall-clock time a run has trained, across resumes (`before`: the checkpoint's), against
-    train.minutes. Counting starts when the clock is made, so loading the store and the start's
-    validation count too: the budget is what the user waits for."""
-
-    def __init__(self, minutes: float) -> None:
-        self.budget = 60.0 * minutes
-        self.before = 0.0
-        self.started = time.perf_counter()
-
-    def seconds(self) -> float:
-        return self.before + time.perf_counter() - self.started
-
-    def spent(self) -> bool:
-        return self.budget > 0 and self.seconds() >= self.budget
-
-    def spent_before(self) -> bool:
-        """The budget was spent by the steps a resumed checkpoint holds (a fresh run takes one step at least)."""
-        return self.budget > 0 and self.before >= self.budget
 
 
 @dataclass
@@ -349,10 +328,8 @@ def _fine_tune_oidn(run: _Run, readers: dict[str, PatchReader], val: dict[str, d
         if run.ranks.lead:
             save_checkpoint(run.checkpoint_path, {**run.state(0), "seconds": 0.0})
 
-    before = run.clock.before
     finetune_partner(run.partner, run.settings, readers, val, run.device, save, run.show, run.progress)
-    run.clock = Clock(run.settings.minutes)  # admc's budget starts now
-    run.clock.before = before
+    run.clock = Clock(run.settings.minutes, before=run.clock.before)  # admc's budget starts now
 
 
 def _validate_all(run: _Run, val: dict[str, dict], step: int) -> None:
