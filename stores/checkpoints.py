@@ -178,7 +178,10 @@ OIDN_BLEND = "oidn_blend"
 def read_blend(path: str | os.PathLike) -> dict[str, float]:
     """{branch: the share of the network's output kept when blended with OIDN's} a weights file ships, or
     {} (the network's output alone: checkpoints, and weights trained without train.oidn_blend)."""
-    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    return _blend_of(_load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT), path)
+
+
+def _blend_of(obj: dict, path: str | os.PathLike) -> dict[str, float]:
     blend = obj.get("metadata", {}).get(OIDN_BLEND, {}) if obj["format"] == WEIGHTS_FORMAT else {}
     if not (isinstance(blend, dict) and all(isinstance(w, (int, float)) and 0 <= w <= 1 for w in blend.values())):
         raise CheckpointError(f"{path}: its {OIDN_BLEND} metadata {blend!r} is not shares in [0, 1] per branch")
@@ -192,7 +195,10 @@ OIDN_NETWORKS = "oidn_networks"
 def read_oidn_networks(path: str | os.PathLike) -> dict[str, dict[str, torch.Tensor]]:
     """{branch: OIDN network state dict} a weights file ships, or a checkpoint's partner holds (its best
     validated step's); {} where OIDN was not fine-tuned (the blend then runs the OIDN library)."""
-    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    return _oidn_networks_of(_load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT), path)
+
+
+def _oidn_networks_of(obj: dict, path: str | os.PathLike) -> dict[str, dict[str, torch.Tensor]]:
     if obj["format"] == WEIGHTS_FORMAT:
         nets = obj.get(OIDN_NETWORKS, {})
     else:
@@ -207,7 +213,10 @@ def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
     """(branch -> {"generator", "critic"} state dicts, model settings, transform spec) from either a
     training checkpoint or exported fp16 weights: whatever a user points fine-tuning or denoising at. A
     checkpoint of a run with a moving average (train.ema) gives that average: what the run ships."""
-    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    return _networks_of(_load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT), path)
+
+
+def _networks_of(obj: dict, path: str | os.PathLike) -> tuple[dict, dict, dict]:
     try:
         if obj["format"] == WEIGHTS_FORMAT:
             return obj["branches"], obj["metadata"]["model"], obj["metadata"]["transform"]
@@ -218,3 +227,9 @@ def read_networks(path: str | os.PathLike) -> tuple[dict, dict, dict]:
         return nets, obj["model"], obj["transform"]
     except (KeyError, TypeError, AttributeError) as exc:
         raise CheckpointError(f"{path}: a malformed {obj['format']} file (no {exc} entry where expected)") from None
+
+
+def read_denoiser(path: str | os.PathLike) -> tuple[tuple[dict, dict, dict], dict[str, float], dict[str, dict]]:
+    """(read_networks, read_blend, read_oidn_networks) of one file, read once: what a denoiser is built from."""
+    obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    return _networks_of(obj, path), _blend_of(obj, path), _oidn_networks_of(obj, path)

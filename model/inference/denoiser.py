@@ -442,12 +442,12 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
     Refuses weights trained on other transforms than this code applies (their outputs would be
     inverted wrongly); a file without a specular branch denoises diffuse only.
     """
-    from admc.stores.checkpoints import CheckpointError, load_network, read_blend, read_networks, read_oidn_networks
+    from admc.stores.checkpoints import CheckpointError, load_network, read_denoiser
 
     from ..nets.settings import ModelSettings
     from ..transforms import transform_spec
 
-    nets, model, transform = read_networks(path)
+    (nets, model, transform), blend, partner = read_denoiser(path)
     if transform != transform_spec():
         changed = differing_keys(transform, transform_spec())
         raise CheckpointError(
@@ -476,7 +476,7 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
             options,
             name=options.name or COLUMN_NAMES[config.base],
             source=str(path),
-            oidn_blend=read_blend(path) if oidn_blend else None,
-            oidn_partner=(read_oidn_networks(path) or None) if oidn_blend else None,
+            oidn_blend=blend if oidn_blend else None,
+            oidn_partner=(partner or None) if oidn_blend else None,
         ),
     )
