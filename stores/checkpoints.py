@@ -229,7 +229,10 @@ def _networks_of(obj: dict, path: str | os.PathLike) -> tuple[dict, dict, dict]:
         raise CheckpointError(f"{path}: a malformed {obj['format']} file (no {exc} entry where expected)") from None
 
 
-def read_denoiser(path: str | os.PathLike) -> tuple[tuple[dict, dict, dict], dict[str, float], dict[str, dict]]:
-    """(read_networks, read_blend, read_oidn_networks) of one file, read once: what a denoiser is built from."""
+def read_denoiser(path: str | os.PathLike, blend: bool) -> tuple[tuple[dict, dict, dict], dict | None, dict | None]:
+    """(read_networks, read_blend, read_oidn_networks) of one file, read once: what a denoiser is built from.
+    Without `blend` the last two are None, unread and unchecked, as for a denoiser that runs no OIDN blend."""
     obj = _load(Path(path), CHECKPOINT_FORMAT, WEIGHTS_FORMAT)
+    if not blend:
+        return _networks_of(obj, path), None, None
     return _networks_of(obj, path), _blend_of(obj, path), _oidn_networks_of(obj, path)

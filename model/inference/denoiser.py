@@ -447,7 +447,7 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
     from ..nets.settings import ModelSettings
     from ..transforms import transform_spec
 
-    (nets, model, transform), blend, partner = read_denoiser(path)
+    (nets, model, transform), blend, partner = read_denoiser(path, oidn_blend)
     if transform != transform_spec():
         changed = differing_keys(transform, transform_spec())
         raise CheckpointError(
@@ -476,7 +476,7 @@ def load_denoiser(path, options: DenoiserOptions = DenoiserOptions(), oidn_blend
             options,
             name=options.name or COLUMN_NAMES[config.base],
             source=str(path),
-            oidn_blend=blend if oidn_blend else None,
-            oidn_partner=(partner or None) if oidn_blend else None,
+            oidn_blend=blend,
+            oidn_partner=partner or None,
         ),
     )
