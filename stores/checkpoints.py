@@ -203,7 +203,10 @@ def _oidn_networks_of(obj: dict, path: str | os.PathLike) -> dict[str, dict[str,
         nets = obj.get(OIDN_NETWORKS, {})
     else:
         partner = obj.get("partner") or {}
-        nets = {b: partner.get("best", {}).get(b, state) for b, state in partner.get("nets", {}).items()}
+        nets = {}
+        for name, state in partner.get("nets", {}).items():  # a branch's candidates: "diffuse", "diffuse raw"
+            branch = name.split()[0]
+            nets[branch] = partner.get("best", {}).get(branch, state)
     if not (isinstance(nets, dict) and all(isinstance(state, dict) for state in nets.values())):
         raise CheckpointError(f"{path}: its {OIDN_NETWORKS} entry is not a state dict per branch")
     return nets

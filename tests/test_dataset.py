@@ -410,8 +410,9 @@ def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
 def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(tmp_path):
     """tile.clean_targets: each train row's target is OIDN's per-branch output on the sanitised reference (the
     refiner's base function at `high`), transformed as the raw reference would be; noisy rows and features
-    are untouched. Val rows keep the raw reference (OIDN's output would favour OIDN in validation). The
-    store records it, so a store tiled on raw references refuses the clean config."""
+    are untouched. Train rows keep the raw reference beside it (what OIDN's fine-tune tries too); val rows keep
+    only the raw reference (OIDN's output would favour OIDN in validation). The store records it, so a store
+    tiled on raw references refuses the clean config."""
     from admc.model.inference.oidn_base import oidn_bases
     from admc.pipeline.render.variants import use_variant
 
@@ -434,6 +435,12 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
         for branch in ("diffuse", "specular"):
             clean_rows = patches.PatchReader(clean.store, split, branch=branch)
             raw_rows = patches.PatchReader(raw.store, split, branch=branch)
+            assert clean_rows.holds_raw_references == (split == "train") and not raw_rows.holds_raw_references
+            if split == "train":
+                clean_rows = clean_rows.with_raw_references()
+            else:
+                with pytest.raises(patches.PatchStoreError, match="keeps no raw references"):
+                    clean_rows.with_raw_references()
             rows = [i for i in range(len(clean_rows)) if clean_rows.locate(i)[0] == scene_id]
             for i in rows:
                 row, raw_row = clean_rows[i], raw_rows[i]
@@ -451,6 +458,7 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
                 )[y : y + 32, x : x + 32].transpose(2, 0, 1)
                 np.testing.assert_array_equal(row["reference"], want.astype(np.float16).astype(np.float32))
                 assert not np.array_equal(row["reference"], raw_row["reference"])
+                np.testing.assert_array_equal(row["raw_reference"], raw_row["reference"])
     mixed = load_config(None, [*overrides, "tile.clean_targets=true"])
     with pytest.raises(patches.PatchStoreError, match="clean_targets"):
         build_dataset(mixed, progress=False)  # the raw store (patches.zarr) is refused, naming the key

@@ -309,6 +309,38 @@ def test_a_resumed_run_keeps_its_fine_tuned_oidn_partner(store, tmp_path):
     assert all(torch.equal(shipped[b][k], again[b][k]) for b in shipped for k in shipped[b])
 
 
+def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_both_speculars(
+    tmp_path_factory, variant, capsys
+):
+    """A store tiled with tile.clean_targets keeps the raw references too: OIDN's diffuse network learns from them
+    (oidn_partner.CANDIDATES); the specular one trains on both targets from the same batches until the first
+    validation, where the one with the lower val relMSE goes on alone; a checkpoint written after that resumes
+    with the networks it holds."""
+    from admc.model.training.oidn_partner import RAW, start_partner
+
+    tmp = tmp_path_factory.mktemp("clean_store")
+    store = build_tiny_store(tmp, size=64, patch=32, extra=["tile.clean_targets=true"])
+    settings = dataclasses.replace(SETTINGS, steps=1, val_every=2, oidn_blend=True, oidn_minutes=0.03)
+    result = train(store, tmp / "run", settings, TINY, progress=True)
+    err = capsys.readouterr().err
+    partner = load_checkpoint(result.checkpoint)["partner"]
+    assert "diffuse" not in partner["scores"] and "OIDN fine-tune step 0 diffuse, raw targets" in err
+    assert any(n.startswith("diffuse: OIDN's network ships") and "on the raw references" in n for n in result.notes)
+    assert "OIDN fine-tune step 2 specular, raw targets: val relMSE" in err
+    kept = [name for name in partner["nets"] if name.startswith("specular")]
+    mine, raw = partner["scores"]["specular"][2], partner["scores"]["specular" + RAW][2]
+    assert kept == ["specular" + RAW if raw < mine else "specular"]  # the trial is over: one goes on
+    dropped = "specular" if raw < mine else "specular" + RAW
+    assert max(partner["scores"][dropped]) == 2  # the other one trained no further
+    targets = "raw" if raw < mine else "cleaned"
+    assert f"OIDN fine-tune specular: goes on with the {targets} targets" in err
+    assert any(n.startswith("specular: OIDN's network ships") and f"on the {targets} " in n for n in result.notes)
+    assert set(partner["nets"]) == {"diffuse" + RAW, *kept}
+    resumed = start_partner(["diffuse", "specular"], settings, None, torch.device("cpu"), ["diffuse", "specular"])
+    resumed.load_state_dict(partner)
+    assert set(resumed.nets) == set(partner["nets"]) == set(resumed.optimizers)
+
+
 def test_oidn_minutes_without_a_blend_or_in_several_processes_is_refused(store, tmp_path):
     from admc.model.training.distributed import check_world
 

@@ -19,13 +19,14 @@ from admc.stores.patches import PatchReader
 
 from ..symmetry import N_SYMMETRIES, apply
 
-IMAGE_KEYS = ("noisy", "features", "reference", "base")
-"""The image entries of an item or batch ("base" only from a reader opened with base=True)."""
+IMAGE_KEYS = ("noisy", "features", "reference", "base", "raw_reference")
+"""The image entries of an item or batch ("base" only from a reader opened with a base, "raw_reference" only from
+one with_raw_references())."""
 
 
 class PatchDataset(Dataset):
-    """Items are (row, augmentation code) pairs -> {"noisy", "features", "reference"[, "base"]} float32
-    tensors, every image under the same symmetry.
+    """Items are (row, augmentation code) pairs -> {"noisy", "features", "reference"[, "base", "raw_reference"]}
+    float32 tensors, every image under the same symmetry.
 
     The PatchReader pickles without open zarr handles, so each DataLoader worker opens its own.
     """

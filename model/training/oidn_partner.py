@@ -4,9 +4,10 @@ OIDN cannot be retrained through its library, but its networks can be: model/net
 torch from the very weights the library runs. Before admc's own fine-tune, each branch's OIDN network (diffuse
 with albedo and normal, specular alone: how admc runs OIDN) trains for train.oidn_minutes on the store's train
 rows, L1 in OIDN's PU domain (where it was trained), and keeps the validated step with the lowest mean val
-relMSE: the library's weights unless a later step beats them. admc's blend share (train.oidn_blend) is then
-chosen against this partner, and the weights file ships it. On three domains of scripts/make_domain_scenes.py
-this took OIDN's error to 0.84-0.98x at 4 spp and about 0.9x at 16 and 64 spp
+relMSE: the library's weights unless a later step beats them. On a store that keeps its raw references beside
+cleaned targets (tile.clean_targets), each branch first tries both targets (Partner). admc's blend share
+(train.oidn_blend) is then chosen against this partner, and the weights file ships it. On three domains of
+scripts/make_domain_scenes.py this took OIDN's error to 0.84-0.98x at 4 spp and about 0.9x at 16 and 64 spp
 (docs/results/2026-12-06-fine-tuned-oidn.md).
 
 The phase is resumable: its state rides in the run's checkpoint (step 0 of admc's own steps).
@@ -23,6 +24,7 @@ from tqdm import tqdm
 
 from admc.common.layout import ALBEDO, NORMAL
 from admc.common.metrics import relmse_torch
+from admc.errors import TrainingError
 from admc.stores.patches import PatchReader
 
 from ..nets.oidn_unet import OidnUNet, batch_exposure, network_input, oidn_unet, transfer
@@ -35,24 +37,47 @@ PARTNER_SEED_OFFSET = 7919
 """The partner's batch stream differs from admc's branch streams (same store, same seed)."""
 
 
+RAW = " raw"
+"""Suffix of a candidate network that learns from the raw references ("diffuse raw"); one named as its branch
+learns from the store's targets."""
+
+CANDIDATES = {"diffuse": (RAW,), "specular": ("", RAW)}
+"""What each branch's network learns from where the store keeps raw references beside cleaned targets
+(tile.clean_targets): the diffuse one the raw references (its best val step beat the cleaned targets' on all
+four domains measured, by 1-9%), the specular one both, until the first validation after step 0, then the
+better alone (which one pays flips by domain: docs/results/2026-12-06-fine-tuned-oidn.md)."""
+
+
 @dataclass
 class Partner:
-    """Each branch's OIDN network in training, its best validated state and where the phase stands."""
+    """Each branch's OIDN network in training, its best validated state and where the phase stands.
 
-    nets: dict[str, OidnUNet]
-    optimizer: torch.optim.Optimizer
+    A branch's networks in training are its candidates (CANDIDATES): one, or two on trial until the first
+    validation after step 0, which keeps the better.
+    """
+
+    nets: dict[str, OidnUNet]  # candidate -> network
+    optimizers: dict[str, torch.optim.Optimizer]  # candidate -> its Adam
     best: dict[str, dict[str, Tensor]] = field(default_factory=dict)  # branch -> state dict of the best step
     best_step: dict[str, int] = field(default_factory=dict)
-    scores: dict[str, dict[int, float]] = field(default_factory=dict)  # branch -> step -> mean val relMSE
+    scores: dict[str, dict[int, float]] = field(default_factory=dict)  # candidate -> step -> mean val relMSE
     step: int = 0
     seconds: float = 0.0
     done: bool = False
     val_outputs: dict[str, Tensor] = field(default_factory=dict)  # branch -> the best nets' linear val output
 
+    @property
+    def on_trial(self) -> list[str]:
+        """The branches whose two targets are both still training."""
+        return [branch_of(name) for name in self.nets if name.endswith(RAW) and branch_of(name) in self.nets]
+
+    def candidates(self, branch: str) -> list[str]:
+        return [name for name in self.nets if branch_of(name) == branch]
+
     def state_dict(self) -> dict:
         return {
-            "nets": {b: net.state_dict() for b, net in self.nets.items()},
-            "optimizer": self.optimizer.state_dict(),
+            "nets": {name: net.state_dict() for name, net in self.nets.items()},
+            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
             "best": self.best,
             "best_step": self.best_step,
             "scores": self.scores,
@@ -62,29 +87,65 @@ class Partner:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        for b, net in self.nets.items():
-            net.load_state_dict(state["nets"][b])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if "optimizers" not in state:
+            raise TrainingError(
+                "the checkpoint's OIDN fine-tune was written by an older admc, whose state this one cannot resume; "
+                "start the run afresh (without --resume, in a new run.workdir or after removing the old run)"
+            )
+        for name in list(self.nets):  # a branch whose targets were chosen has one candidate left
+            if name not in state["nets"]:
+                del self.nets[name], self.optimizers[name]
+        for name, net in self.nets.items():
+            net.load_state_dict(state["nets"][name])
+            self.optimizers[name].load_state_dict(state["optimizers"][name])
         self.best, self.best_step, self.scores = state["best"], state["best_step"], state["scores"]
         self.step, self.seconds, self.done = int(state["step"]), float(state["seconds"]), bool(state["done"])
 
     def shipped(self) -> dict[str, dict[str, Tensor]]:
         """branch -> the state dict the weights file ships (the best validated step's)."""
-        return {b: self.best.get(b, net.state_dict()) for b, net in self.nets.items()}
+        return {
+            b: self.best.get(b, self.nets[self.candidates(b)[0]].state_dict())
+            for b in dict.fromkeys(branch_of(name) for name in self.nets)
+        }
+
+    def start_score(self, branch: str) -> float:
+        """The branch's val relMSE at step 0: OIDN's own weights (or the ones the run started from)."""
+        return next(scores[0] for name, scores in self.scores.items() if branch_of(name) == branch and 0 in scores)
+
+    def branch_scores(self, branch: str) -> list[float]:
+        """Every val relMSE of the branch's candidates, a dropped one's included."""
+        return [s for name, scores in self.scores.items() if branch_of(name) == branch for s in scores.values()]
+
+    def chosen_targets(self, branch: str) -> str | None:
+        """What the branch's network learns from on a store with both targets ("raw" or "cleaned"); None on a
+        store without, or while its trial runs."""
+        if branch + RAW not in self.scores or branch in self.on_trial:
+            return None
+        return "raw" if self.candidates(branch) == [branch + RAW] else "cleaned"
+
+
+def branch_of(candidate: str) -> str:
+    return candidate.removesuffix(RAW)
 
 
 def start_partner(
-    branches: list[str], settings: TrainSettings, init: dict[str, dict] | None, device: torch.device
+    branches: list[str],
+    settings: TrainSettings,
+    init: dict[str, dict] | None,
+    device: torch.device,
+    raw_references: list[str] = (),
 ) -> Partner:
-    """The branches' OIDN networks from `init` (a fine-tuned partner a weights file ships) or the library's."""
+    """The branches' OIDN networks from `init` (a fine-tuned partner a weights file ships) or the library's;
+    the branches in `raw_references` (their store keeps them beside cleaned targets) get their CANDIDATES."""
     nets = {}
-    for b in branches:
+    for name in [b + suffix for b in branches for suffix in (CANDIDATES[b] if b in raw_references else ("",))]:
+        b = branch_of(name)
         net = oidn_unet(b)
         if init and b in init:
             net.load_state_dict({k: v.float() for k, v in init[b].items()})
-        nets[b] = net.to(device).train()
-    params = [p for net in nets.values() for p in net.parameters()]
-    return Partner(nets, torch.optim.Adam(params, lr=settings.oidn_lr))
+        nets[name] = net.to(device).train()
+    optimizers = {name: torch.optim.Adam(net.parameters(), lr=settings.oidn_lr) for name, net in nets.items()}
+    return Partner(nets, optimizers)
 
 
 def finetune_partner(
@@ -105,7 +166,7 @@ def finetune_partner(
         streams = {
             b: iter(
                 train_loader(
-                    r,
+                    r.with_raw_references() if any(name.endswith(RAW) for name in partner.candidates(b)) else r,
                     settings.batch_size,
                     branch_seed(settings.seed, b) + PARTNER_SEED_OFFSET,
                     partner.step,
@@ -124,12 +185,14 @@ def finetune_partner(
             disable=not progress,
         )
         while True:
-            for b, net in partner.nets.items():
-                x, target = _pairs(next(streams[b]), b, device)
-                loss = (net(x) - target).abs().mean()
-                partner.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                partner.optimizer.step()
+            for b in readers:
+                batch = next(streams[b])  # one batch for both of a branch's candidates: a fair trial
+                for name in partner.candidates(b):
+                    x, target = _pairs(batch, b, "raw_reference" if name.endswith(RAW) else "reference", device)
+                    loss = (partner.nets[name](x) - target).abs().mean()
+                    partner.optimizers[name].zero_grad(set_to_none=True)
+                    loss.backward()
+                    partner.optimizers[name].step()
             partner.step += 1
             partner.seconds = clock.seconds()
             bar.update(min(round(partner.seconds), round(clock.budget)) - bar.n)
@@ -137,24 +200,42 @@ def finetune_partner(
             spent = clock.spent()
             if spent or (settings.val_every and partner.step % settings.val_every == 0):
                 _validate(partner, val, settings.batch_size, device, show)
+                _choose_targets(partner, show)
                 partner.done = spent
                 save()
             if spent:
                 break
         bar.close()
         del streams
-    for b, net in partner.nets.items():
+    for b, state in partner.shipped().items():
         if b in val:
-            shipped = OidnUNet(net.enc_conv0.in_channels).to(device)
-            shipped.load_state_dict(partner.shipped()[b])
+            shipped = OidnUNet(partner.nets[partner.candidates(b)[0]].enc_conv0.in_channels).to(device)
+            shipped.load_state_dict(state)
             partner.val_outputs[b] = _run(shipped, val[b], b, settings.batch_size, device)
 
 
-def _pairs(batch: dict[str, Tensor], branch: str, device: torch.device) -> tuple[Tensor, Tensor]:
-    """(network input, target in the network's domain) of a store batch of one branch."""
+def _choose_targets(partner: Partner, show: Callable[[str], None]) -> None:
+    """At the first validation after step 0, each branch on trial keeps the candidate with the lower val
+    relMSE (the store's targets on a tie) and drops the other with its optimizer."""
+    for b in partner.on_trial:
+        twin = b + RAW
+        mine, raw = partner.scores.get(b, {}).get(partner.step), partner.scores.get(twin, {}).get(partner.step)
+        loser = twin if raw is None or mine is None or mine <= raw else b
+        del partner.nets[loser], partner.optimizers[loser]
+        if raw is not None and mine is not None:
+            kept = "raw" if loser == b else "cleaned"
+            show(
+                f"OIDN fine-tune {b}: goes on with the {kept} targets (val relMSE at step {partner.step}: "
+                f"cleaned {mine:.4g}, raw {raw:.4g})"
+            )
+
+
+def _pairs(batch: dict[str, Tensor], branch: str, target: str, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(network input, target in the network's domain) of a store batch of one branch; `target`: the batch's
+    entry to learn ("reference", or "raw_reference" for a candidate on the raw references)."""
     features = batch["features"].to(device)
     noisy = to_linear(batch["noisy"].to(device), features, branch).float()
-    reference = to_linear(batch["reference"].to(device), features, branch).float()
+    reference = to_linear(batch[target].to(device), features, branch).float()
     exposure = batch_exposure(noisy)
     return network_input(noisy, exposure, *_guides(features, branch)), transfer(reference * exposure)
 
@@ -179,17 +260,23 @@ def _run(net: OidnUNet, rows: dict[str, Tensor], branch: str, batch_size: int, d
 
 
 def _validate(partner: Partner, val: dict, batch_size: int, device: torch.device, show: Callable[[str], None]) -> None:
-    """Score every branch's network on its val rows; keep it if it is the best so far."""
-    for b, net in partner.nets.items():
+    """Score every candidate on its branch's val rows; keep it if it is the branch's best so far. At step 0 a
+    branch's two candidates are one (the start weights) and share a score."""
+    for name, net in partner.nets.items():
+        b = branch_of(name)
         if b not in val:
+            continue
+        scores = partner.scores.setdefault(name, {})
+        if partner.step == 0 and name.endswith(RAW) and b in partner.nets:
+            scores[0] = partner.scores[b][0]
             continue
         rows = val[b]
         reference = to_linear(rows["reference"], rows["features"], b)
         score = float(relmse_torch(_run(net, rows, b, batch_size, device), reference).mean())
-        scores = partner.scores.setdefault(b, {})
         scores[partner.step] = score
-        if score <= min(scores.values()):
+        if score <= min(partner.branch_scores(b)):
             partner.best[b] = {k: v.detach().clone().cpu() for k, v in net.state_dict().items()}
             partner.best_step[b] = partner.step
-        line = f"OIDN fine-tune step {partner.step} {b}: val relMSE {score:.4g} ({score / scores[0]:.3f}x OIDN's"
+        label = f"{b}, raw targets" if name.endswith(RAW) else b
+        line = f"OIDN fine-tune step {partner.step} {label}: val relMSE {score:.4g} ({score / scores[0]:.3f}x OIDN's"
         show(line + f"; best step {partner.best_step[b]})")

@@ -318,7 +318,8 @@ def _fine_tune_oidn(run: _Run, readers: dict[str, PatchReader], val: dict[str, d
     """The partner phase (oidn_partner.py), before admc's steps and outside train.minutes; its state rides in
     the checkpoint at step 0, so an interrupted phase resumes."""
     init = read_oidn_networks(run.init_from) if run.init_from is not None else None
-    run.partner = start_partner(list(readers), run.settings, init, run.device)
+    raw = [b for b, r in readers.items() if r.holds_raw_references]  # beside cleaned targets: oidn_partner.CANDIDATES
+    run.partner = start_partner(list(readers), run.settings, init, run.device, raw)
     if checkpoint is not None and checkpoint.get("partner"):
         run.partner.load_state_dict(checkpoint["partner"])
     if not run.partner.done:
@@ -522,12 +523,17 @@ def _finish(run: _Run, start: int) -> TrainResult:
 
 
 def _partner_notes(partner: Partner) -> list[str]:
-    """What OIDN's fine-tune ships per branch: its step and val relMSE against OIDN's own weights."""
+    """What OIDN's fine-tune ships per branch: its step, what it learned from, and its val relMSE against
+    OIDN's own weights."""
     notes = []
-    for b, scores in partner.scores.items():
-        step = partner.best_step.get(b, partner.step)
+    for b in partner.shipped():
+        scores = partner.branch_scores(b)
+        if not scores:
+            continue
+        step = partner.best_step.get(b, 0)
+        chosen = {"raw": " on the raw references", "cleaned": " on the cleaned targets"}.get(partner.chosen_targets(b))
         notes.append(
-            f"{b}: OIDN's network ships step {step} of {partner.step} of its fine-tune "
-            f"(val relMSE {scores[step] / scores[0]:.3f}x OIDN's own weights)"
+            f"{b}: OIDN's network ships step {step} of {partner.step} of its fine-tune{chosen or ''} "
+            f"(val relMSE {min(scores) / partner.start_score(b):.3f}x OIDN's own weights)"
         )
     return notes

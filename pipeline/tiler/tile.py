@@ -142,6 +142,14 @@ def _level_images(
     return images
 
 
+def _raw_references(albedo: np.ndarray, reference: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The raw reference in the store's transforms, as `_level_images` puts a target: beside a cleaned one."""
+    images = {"raw_ref_diffuse": tf.diffuse_forward(reference["diffuse"], albedo)}
+    if "specular" in reference:
+        images["raw_ref_specular"] = tf.specular_forward(reference["specular"])
+    return images
+
+
 def tile_scene(
     out_dir: Path,
     inputs: dict[str, Path],
@@ -167,9 +175,10 @@ def tile_scene(
         return exr.read_exr(inputs[name] / EXR_NAME)
 
     sanitized: dict = {}
-    reference = _clean(read("reference"), sanitized, "reference")
+    raw_reference = _clean(read("reference"), sanitized, "reference")
+    reference = raw_reference
     if clean_targets:  # OIDN's per-branch output on the reference: at a few hundred spp far cleaner than the raw one
-        reference = {**reference, **oidn_bases(reference, "oidn")}
+        reference = {**raw_reference, **oidn_bases(raw_reference, "oidn")}
     spp_inputs = sorted((k for k in inputs if k != "reference"), key=lambda k: int(k[3:]))
     noisy = {k: _clean(read(k), sanitized, k) for k in spp_inputs}
     has_specular = "specular" in reference
@@ -184,9 +193,10 @@ def tile_scene(
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
-        for name, image in _level_images(
-            noisy[key], reference["diffuse"], ref_specular, refiner_base, noise_maps
-        ).items():
+        images = _level_images(noisy[key], reference["diffuse"], ref_specular, refiner_base, noise_maps)
+        if clean_targets:  # the raw reference too: OIDN's fine-tune learns from it (training/oidn_partner.py)
+            images |= _raw_references(noisy[key]["albedo"], raw_reference)
+        for name, image in images.items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
         rows.setdefault("origin", []).append(origins)

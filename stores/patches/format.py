@@ -26,6 +26,9 @@ ROW_IMAGES = {"noisy_diffuse": 3, "noisy_specular": 3, "features": N_FEATURES}
 CROP_IMAGES = {"ref_diffuse": 3, "ref_specular": 3}
 BASE_IMAGES = {"base_diffuse": 3, "base_specular": 3}
 """Optional row arrays (tile.oidn_base): OIDN's output for the row, what model.base = "oidn" refines."""
+RAW_REF_IMAGES = {"raw_ref_diffuse": 3, "raw_ref_specular": 3}
+"""Optional crop arrays of train scenes tiled with tile.clean_targets: the raw reference beside the cleaned
+target, which OIDN's fine-tune learns from too (model/training/oidn_partner.py, CANDIDATES)."""
 NOISE_IMAGES = {"noise_diffuse": 1, "noise_specular": 1}
 """Optional row arrays (tile.noise_maps): each branch's noise level (model/transforms.noise_forward), what
 model.noise_input reads as the last feature channel. Not in LAYOUT: the root attributes (and with them the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import copy
 import os
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from admc.stores.patches.format import (
     BASE_IMAGES,
     CROP_IMAGES,
     NOISE_IMAGES,
+    RAW_REF_IMAGES,
     ROW_IMAGES,
     SPLITS,
     STAGING,
@@ -50,6 +52,8 @@ class PatchReader:
     have it at the quality that base names for this branch.
     With `noise`, the branch's noise map is appended to "features" as their last channel (what a
     model.noise_input generator reads), and every scene must have it.
+    `holds_raw_references`: every scene keeps its raw reference beside a cleaned target (tile.clean_targets);
+    a reader from `with_raw_references()` then adds it to each item ("raw_reference").
     """
 
     def __init__(
@@ -69,6 +73,7 @@ class PatchReader:
         self.branch = branch
         self.base = base
         self.noise = noise
+        self.raw_references = False
         root = _open_root(self.path)
         self.attrs = dict(root.attrs)
         if expect_transform is not None:
@@ -86,6 +91,7 @@ class PatchReader:
         self._crop: list[np.ndarray] = []
         self._starts: list[int] = []
         total = 0
+        self.holds_raw_references = True
         for scene in list_scenes(self.path, split):
             with _reading(self.path, split, scene, "zarr.json"):
                 group = root[f"{split}/{scene}"]
@@ -94,6 +100,7 @@ class PatchReader:
                 has_base = group.attrs.get("has_base", False)
                 quality = stored_quality(group.attrs.get("base", {}), branch)
                 has_noise = group.attrs.get("has_noise", False)
+                self.holds_raw_references &= group.attrs.get("has_raw_references", False)
             if noise and not has_noise:
                 raise PatchStoreError(
                     f"patch store {self.path}: scene {split}/{scene} has no noise maps, which model.noise_input = "
@@ -119,11 +126,23 @@ class PatchReader:
             self._starts.append(total)
             total += len(self._spp[-1])
         self._len = total
+        self.holds_raw_references &= total > 0
         self._root: zarr.Group | None = None
         self._arrays: dict[str, zarr.Array] = {}
 
     def __len__(self) -> int:
         return self._len
+
+    def with_raw_references(self) -> PatchReader:
+        """The same rows, each item with its raw reference too; a store without them is refused."""
+        if not self.holds_raw_references:
+            raise PatchStoreError(
+                f"patch store {self.path}: split {self.split!r} keeps no raw references beside its targets (they are "
+                "kept in train scenes tiled with tile.clean_targets = true)"
+            )
+        other = copy.copy(self)
+        other.__dict__.update(self.__getstate__(), raw_references=True)
+        return other
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_root": None, "_arrays": {}}
@@ -161,6 +180,8 @@ class PatchReader:
         }
         if self.base:
             item["base"] = self._patch(scene, f"base_{self.branch}", row)
+        if self.raw_references:
+            item["raw_reference"] = self._patch(scene, f"raw_ref_{self.branch}", crop)
         if self.noise:
             item["features"] = np.concatenate([item["features"], self._patch(scene, f"noise_{self.branch}", row)])
         return item
@@ -214,7 +235,7 @@ def store_summary(path: str | os.PathLike) -> dict:
             entry["crops"] += int(group.attrs["n_crops"])
             for spp, count in zip(*np.unique(group["spp"][...], return_counts=True)):
                 entry["rows_per_spp"][int(spp)] = entry["rows_per_spp"].get(int(spp), 0) + int(count)
-            for name in (*ROW_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, *CROP_IMAGES):
+            for name in (*ROW_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, *CROP_IMAGES, *RAW_REF_IMAGES):
                 if name in group:
                     with _reading(path, split, scene, name):
                         values = group[name][...]

@@ -21,6 +21,7 @@ from admc.stores.patches.format import (
     FORMAT_VERSION,
     LAYOUT,
     NOISE_IMAGES,
+    RAW_REF_IMAGES,
     REQUIRED_ROOT_ATTRS,
     REQUIRED_SCENE_ATTRS,
     ROW_IMAGES,
@@ -92,7 +93,7 @@ def create_store(path: str | os.PathLike, attrs: dict) -> None:
 
 
 def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> dict[str, np.ndarray]:
-    known = {*ROW_IMAGES, *CROP_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, "spp", "crop", "origin"}
+    known = {*ROW_IMAGES, *CROP_IMAGES, *RAW_REF_IMAGES, *BASE_IMAGES, *NOISE_IMAGES, "spp", "crop", "origin"}
     unknown = set(arrays) - known
     if unknown:
         raise PatchStoreError(f"{where}: unknown arrays {sorted(unknown)} (known: {sorted(known)})")
@@ -100,7 +101,7 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     required = ["noisy_diffuse", "features", "ref_diffuse", "spp", "crop", "origin"]
     if specular:
         required += list(SPECULAR_ARRAYS)
-    for kind, images in (("base", BASE_IMAGES), ("noise", NOISE_IMAGES)):  # for every branch the scene has
+    for kind, images in (("base", BASE_IMAGES), ("noise", NOISE_IMAGES), ("raw_ref", RAW_REF_IMAGES)):  # every branch
         if any(name in arrays for name in images):
             required += [f"{kind}_diffuse"] + ([f"{kind}_specular"] if specular else [])
             if f"{kind}_specular" in arrays and not specular:
@@ -113,11 +114,11 @@ def _validate_arrays(arrays: dict[str, np.ndarray], patch: int, where: str) -> d
     if n == 0 or m == 0:
         raise PatchStoreError(f"{where}: a scene needs at least one row and one crop (got {n} rows, {m} crops)")
     out = {}
-    for name, channels in {**ROW_IMAGES, **BASE_IMAGES, **NOISE_IMAGES, **CROP_IMAGES}.items():
+    for name, channels in {**ROW_IMAGES, **BASE_IMAGES, **NOISE_IMAGES, **CROP_IMAGES, **RAW_REF_IMAGES}.items():
         if name not in arrays:
             continue
         a = np.asarray(arrays[name])
-        want = ((m if name in CROP_IMAGES else n), channels, patch, patch)
+        want = ((m if name in CROP_IMAGES or name in RAW_REF_IMAGES else n), channels, patch, patch)
         if a.shape != want:
             raise PatchStoreError(f"{where}: {name} has shape {a.shape}, expected {want}")
         if a.dtype not in (np.float16, np.float32, np.float64):
@@ -192,6 +193,7 @@ def write_scene(
             "has_specular": "noisy_specular" in data,
             "has_base": "base_diffuse" in data,
             **({"has_noise": True} if "noise_diffuse" in data else {}),  # absent without: attributes as before
+            **({"has_raw_references": True} if "raw_ref_diffuse" in data else {}),
             "n_rows": len(data["spp"]),
             "n_crops": len(data["origin"]),
             "spp_levels": sorted({int(s) for s in data["spp"]}),
