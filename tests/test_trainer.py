@@ -341,6 +341,16 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
     assert set(resumed.nets) == set(partner["nets"]) == set(resumed.optimizers)
 
 
+def test_an_older_admcs_oidn_partner_state_is_refused_with_one_message():
+    """Before the candidates, a checkpoint held one Adam for both OIDN networks: such a state cannot resume."""
+    from admc.model.training.oidn_partner import start_partner
+
+    old = {"nets": {}, "optimizer": {}, "best": {}, "best_step": {}, "scores": {}, "step": 3, "seconds": 1.0}
+    partner = start_partner(["specular"], SETTINGS, None, torch.device("cpu"))
+    with pytest.raises(TrainingError, match="written by an older admc, whose state this one cannot resume"):
+        partner.load_state_dict({**old, "done": False})
+
+
 def test_oidn_minutes_without_a_blend_or_in_several_processes_is_refused(store, tmp_path):
     from admc.model.training.distributed import check_world
 
