@@ -142,11 +142,12 @@ def _level_images(
     return images
 
 
-def _raw_references(albedo: np.ndarray, reference: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The raw reference in the store's transforms, as `_level_images` puts a target: beside a cleaned one."""
-    images = {"raw_ref_diffuse": tf.diffuse_forward(reference["diffuse"], albedo)}
-    if "specular" in reference:
-        images["raw_ref_specular"] = tf.specular_forward(reference["specular"])
+def _raw_references(albedo: np.ndarray, diffuse: np.ndarray, specular: np.ndarray | None) -> dict[str, np.ndarray]:
+    """The raw reference in the store's transforms, as `_level_images` puts a target: beside a cleaned one.
+    `diffuse` is linear; `specular` already transformed (it does not depend on the level), None without."""
+    images = {"raw_ref_diffuse": tf.diffuse_forward(diffuse, albedo)}
+    if specular is not None:
+        images["raw_ref_specular"] = specular
     return images
 
 
@@ -191,11 +192,12 @@ def tile_scene(
         score = importance_map(noisy[spp_inputs[0]], reference)
         origins = choose_crops(score, crops_per_scene, patch_size, candidates_per_crop, rng)
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
+    raw_specular = tf.specular_forward(raw_reference["specular"]) if has_specular and clean_targets else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
         images = _level_images(noisy[key], reference["diffuse"], ref_specular, refiner_base, noise_maps)
         if clean_targets:  # the raw reference too: OIDN's fine-tune learns from it (training/oidn_partner.py)
-            images |= _raw_references(noisy[key]["albedo"], raw_reference)
+            images |= _raw_references(noisy[key]["albedo"], raw_reference["diffuse"], raw_specular)
         for name, image in images.items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
