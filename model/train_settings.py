@@ -21,6 +21,7 @@ SELECT_METRICS = tuple(SELECT_METRIC_LABELS)
 
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
+OIDN_LOSSES = ("l1", "l1_msssim")
 STAGES = ("pretrain", "finetune")
 
 
@@ -67,6 +68,7 @@ class TrainSettings:
     oidn_minutes: float = 0.0  # > 0: before its own steps, a fine-tune trains OIDN's networks this long on
     # the domain (training/oidn_partner.py), the partner the blend then mixes with; 0 = OIDN as it ships
     oidn_lr: float = 2e-5  # Adam's rate for that (chosen on the val frames of the domains: docs/results/)
+    oidn_loss: str = "l1"  # its loss in OIDN's PU domain: l1 | l1_msssim (OIDN's own training loss; nets/losses.py)
     select_z: float = 2.0  # a fine-tuning ships a step only this many standard errors better than
     # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -132,6 +134,7 @@ class TrainSettings:
             f"is {self.oidn_minutes:g}: it fine-tunes OIDN as the partner of the OIDN blend, but oidn_blend is "
             "false; set oidn_blend = true, or oidn_minutes = 0",
         )
+        require(self.oidn_loss in OIDN_LOSSES, "oidn_loss", f"{self.oidn_loss!r} is not one of {OIDN_LOSSES}")
         require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")
         require(

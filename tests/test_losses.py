@@ -9,7 +9,17 @@ from admc.common import metrics
 from admc.model.nets.critic import Critic
 from admc.model.nets.generator import Generator
 from admc.model.nets.settings import ModelSettings
-from admc.model.nets.losses import critic_loss, display, display_ssim_loss, generator_loss, gradient_penalty, log_floor
+from admc.model.nets.losses import (
+    critic_loss,
+    display,
+    display_ssim_loss,
+    generator_loss,
+    gradient_penalty,
+    log_floor,
+    ms_ssim,
+    oidn_loss,
+)
+from admc.model.train_settings import TrainSettings
 
 
 class LinearCritic(nn.Module):
@@ -230,3 +240,47 @@ def test_the_ssim_term_is_float32_and_unchanged_under_bf16_autocast():
         assert torch.nn.functional.conv2d(real, torch.ones(3, 3, 1, 1)).dtype == torch.bfloat16  # autocast is on
     assert loss.dtype == torch.float32
     assert loss.item() == pytest.approx(reference.item(), rel=1e-5)
+
+
+def _pair(size, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.rand(2, 3, size, size, generator=g, dtype=torch.float64)
+    return a, (a + 0.1 * torch.randn(a.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+
+
+def test_ms_ssim_at_one_scale_is_the_metrics_ssim_and_at_two_the_geometric_mean_of_cs_and_ssim():
+    """Below 22 pixels one scale fits the 11x11 window: MS-SSIM is then the SSIM map's mean (metrics'
+    constants on 8-bit values, data range 1 here); at 22 the 2x2-averaged image gets a second scale, where the
+    full scale keeps only its contrast-structure term."""
+    a, b = _pair(16)
+    assert ms_ssim(a, b).item() == pytest.approx(metrics.ssim_map_torch(255 * a, 255 * b).mean().item(), abs=1e-12)
+    a, b = _pair(22, seed=1)
+    c2 = (metrics.SSIM_K2 * 255) ** 2
+    full, half = 255 * a, 255 * b
+    taps = torch.exp(-0.5 * torch.arange(-5, 6, dtype=torch.float64) ** 2 / 1.5**2)
+    taps = (taps / taps.sum()).view(1, 1, 1, -1).expand(3, 1, 1, -1)
+    smooth = lambda x: torch.nn.functional.conv2d(  # noqa: E731
+        torch.nn.functional.conv2d(x, taps, groups=3), taps.transpose(2, 3), groups=3
+    )
+    cov = smooth(full * half) - smooth(full) * smooth(half)
+    var = smooth(full**2) - smooth(full) ** 2 + smooth(half**2) - smooth(half) ** 2
+    cs = ((2 * cov + c2) / (var + c2)).mean(dim=(2, 3))
+    pooled = metrics.ssim_map_torch(*(torch.nn.functional.avg_pool2d(x, 2) for x in (full, half))).mean(dim=(2, 3))
+    assert ms_ssim(a, b).item() == pytest.approx((cs * pooled).sqrt().mean().item(), abs=1e-12)
+
+
+def test_the_oidn_losses_are_l1_or_oidns_mix_with_ms_ssim_and_train_finitely():
+    """train.oidn_loss: "l1", or OIDN's own 0.16 L1 + 0.84 (1 - MS-SSIM); zero on the target itself, finite
+    gradients on flat black and white patches (MS-SSIM's terms there are 1, where a power has no bad slope)."""
+    a, b = (x.float() for x in _pair(128))
+    l1 = (a - b).abs().mean()
+    assert oidn_loss(a, b, "l1").item() == pytest.approx(l1.item(), rel=1e-6)
+    mix = 0.16 * l1.item() + 0.84 * (1 - ms_ssim(a, b).item())
+    assert oidn_loss(a, b, "l1_msssim").item() == pytest.approx(mix, rel=1e-5)
+    assert oidn_loss(b, b, "l1_msssim").item() == pytest.approx(0.0, abs=1e-6)
+    for flat in (torch.zeros(1, 3, 128, 128), torch.ones(1, 3, 128, 128)):
+        out = flat.clone().requires_grad_()
+        oidn_loss(out, torch.rand_like(flat), "l1_msssim").backward()
+        assert torch.isfinite(out.grad).all()
+    with pytest.raises(ValueError, match="^oidn_loss: 'msssim' is not one of"):
+        TrainSettings(oidn_loss="msssim").check()

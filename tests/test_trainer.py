@@ -283,9 +283,9 @@ def test_a_fine_tuned_oidn_partner_is_trained_first_selected_on_validation_and_s
     assert set(shipped) == {"diffuse", "specular"}
     for branch, state in shipped.items():
         assert state["enc_conv0.weight"].dtype == torch.float16
-        note = next(n for n in result.notes if n.startswith(f"{branch}: OIDN's network ships step"))
+        note = next(n for n in result.notes if n.startswith(f"{branch}: OIDN's network ships"))
         library = oidn_unet(branch).state_dict()
-        if " step 0 of " in note:  # nothing beat OIDN's own weights on the val rows: they ship
+        if "ships its own weights: no step of its fine-tune" in note:  # none beat them on the val rows
             assert all(torch.equal(state[k], v.half()) for k, v in library.items())
         else:
             assert any(not torch.equal(state[k], v.half()) for k, v in library.items())
@@ -315,12 +315,14 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
     """A store tiled with tile.clean_targets keeps the raw references too: OIDN's diffuse network learns from them
     (oidn_partner.CANDIDATES); the specular one trains on both targets from the same batches until the first
     validation, where the one with the lower val relMSE goes on alone; a checkpoint written after that resumes
-    with the networks it holds."""
+    with the networks it holds. It trains with OIDN's own loss (train.oidn_loss), the other partner tests with L1."""
     from admc.model.training.oidn_partner import RAW, start_partner
 
     tmp = tmp_path_factory.mktemp("clean_store")
     store = build_tiny_store(tmp, size=64, patch=32, extra=["tile.clean_targets=true"])
-    settings = dataclasses.replace(SETTINGS, steps=1, val_every=2, oidn_blend=True, oidn_minutes=0.03)
+    settings = dataclasses.replace(
+        SETTINGS, steps=1, val_every=2, oidn_blend=True, oidn_minutes=0.03, oidn_loss="l1_msssim"
+    )
     result = train(store, tmp / "run", settings, TINY, progress=True)
     err = capsys.readouterr().err
     partner = load_checkpoint(result.checkpoint)["partner"]

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from admc.common.metrics import GAMMA, LDR_RANGE, ssim_map_torch
+from admc.common.metrics import GAMMA, LDR_RANGE, SSIM_K1, SSIM_K2, SSIM_RADIUS, SSIM_SIGMA, ssim_map_torch
 
 DISPLAY_OFFSET = 1e-5  # linear; keeps the gamma curve's slope finite at 0 (below 8-bit level 1, 5.1e-6)
 
@@ -56,6 +56,53 @@ def display_ssim_loss(fake: Tensor, real: Tensor, linear_scale: Tensor | None = 
         if linear_scale is not None:
             fake_linear, real_linear = fake_linear * linear_scale.float(), real_linear * linear_scale.float()
         return 1.0 - ssim_map_torch(display(fake_linear), display(real_linear)).mean()
+
+
+def ms_ssim(a: Tensor, b: Tensor, data_range: float = 1.0, max_scales: int = 5) -> Tensor:
+    """Mean multi-scale SSIM (Wang et al. 2003) of (N, C, H, W) images, with equal weights over the scales, as
+    OIDN's training computes it (RenderKit/oidn training/ssim.py): the contrast-structure term at each scale
+    but the coarsest, full SSIM there, halving by 2x2 averages between. As many scales as keep the 11x11
+    window inside the image, up to `max_scales` (4 for 128x128 patches, where OIDN's 256x256 tiles get 5)."""
+    scales = 1
+    while scales < max_scales and min(a.shape[-2:]) >> scales >= 2 * SSIM_RADIUS + 1:
+        scales += 1
+    offsets = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, device=a.device, dtype=a.dtype)
+    taps = torch.exp(-0.5 * offsets**2 / SSIM_SIGMA**2)
+    taps = taps / taps.sum()
+    channels = a.shape[1]
+    across, down = taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1), taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1)
+
+    def blur(img: Tensor) -> Tensor:
+        return F.conv2d(F.conv2d(img, across, groups=channels), down, groups=channels)
+
+    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
+    product = torch.ones(a.shape[:2], device=a.device, dtype=a.dtype)
+    for scale in range(scales):
+        mu_a, mu_b = blur(a), blur(b)
+        var_a, var_b, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+        term = (2 * cov + c2) / (var_a + var_b + c2)
+        if scale == scales - 1:
+            term = term * (2 * mu_a * mu_b + c1) / (mu_a**2 + mu_b**2 + c1)
+        # clamped, not relu'd as OIDN's: a power below 1 of 0 has an infinite slope
+        product = product * term.mean(dim=(2, 3)).clamp(min=1e-6) ** (1.0 / scales)
+        a, b = F.avg_pool2d(a, 2), F.avg_pool2d(b, 2)
+    return product.mean()
+
+
+OIDN_MSSSIM_SHARE = 0.84
+"""OIDN's own training loss (RenderKit/oidn training, loss.py's default `l1_msssim`, after Zhao et al. 2017):
+0.16 L1 + 0.84 (1 - MS-SSIM) of the PU-transferred values."""
+
+
+def oidn_loss(output: Tensor, target: Tensor, kind: str) -> Tensor:
+    """The loss OIDN's networks fine-tune with (train.oidn_loss), on values in OIDN's PU domain (about 0..1):
+    "l1", or "l1_msssim", the mix OIDN was trained with. Always float32."""
+    output, target = output.float(), target.float()
+    l1 = (output - target).abs().mean()
+    if kind == "l1":
+        return l1
+    with torch.autocast(device_type=output.device.type, enabled=False):
+        return (1 - OIDN_MSSSIM_SHARE) * l1 + OIDN_MSSSIM_SHARE * (1 - ms_ssim(output, target))
 
 
 def generator_loss(

@@ -3,10 +3,10 @@
 OIDN cannot be retrained through its library, but its networks can be: model/nets/oidn_unet.py runs them in
 torch from the very weights the library runs. Before admc's own fine-tune, each branch's OIDN network (diffuse
 with albedo and normal, specular alone: how admc runs OIDN) trains for train.oidn_minutes on the store's train
-rows, L1 in OIDN's PU domain (where it was trained), and keeps the validated step with the lowest mean val
-relMSE: the library's weights unless a later step beats them. On a store that keeps its raw references beside
-cleaned targets (tile.clean_targets), each branch first tries both targets (Partner). admc's blend share
-(train.oidn_blend) is then chosen against this partner, and the weights file ships it. On three domains of
+rows with train.oidn_loss in OIDN's PU domain (where it was trained), and keeps the validated step with the
+lowest mean val relMSE: the library's weights unless a later step beats them. On a store that keeps its raw
+references beside cleaned targets (tile.clean_targets), each branch first tries both targets (Partner). admc's
+blend share (train.oidn_blend) is then chosen against this partner, and the weights file ships it. On three domains of
 scripts/make_domain_scenes.py this took OIDN's error to 0.84-0.98x at 4 spp and about 0.9x at 16 and 64 spp
 (docs/results/2026-12-06-fine-tuned-oidn.md).
 
@@ -27,6 +27,7 @@ from admc.common.metrics import relmse_torch
 from admc.errors import TrainingError
 from admc.stores.patches import PatchReader
 
+from ..nets.losses import oidn_loss
 from ..nets.oidn_unet import OidnUNet, batch_exposure, network_input, oidn_unet, transfer
 from ..train_settings import TrainSettings
 from .clock import Clock
@@ -189,7 +190,7 @@ def finetune_partner(
                 batch = next(streams[b])  # one batch for both of a branch's candidates: a fair trial
                 for name in partner.candidates(b):
                     x, target = _pairs(batch, b, "raw_reference" if name.endswith(RAW) else "reference", device)
-                    loss = (partner.nets[name](x) - target).abs().mean()
+                    loss = oidn_loss(partner.nets[name](x), target, settings.oidn_loss)
                     partner.optimizers[name].zero_grad(set_to_none=True)
                     loss.backward()
                     partner.optimizers[name].step()

@@ -524,7 +524,7 @@ def _finish(run: _Run, start: int) -> TrainResult:
 
 def _partner_notes(partner: Partner) -> list[str]:
     """What OIDN's fine-tune ships per branch: its step, what it learned from, and its val relMSE against
-    OIDN's own weights."""
+    OIDN's own weights (or that those ship: no step beat them)."""
     notes = []
     for b in partner.shipped():
         scores = partner.branch_scores(b)
@@ -532,6 +532,12 @@ def _partner_notes(partner: Partner) -> list[str]:
             continue
         step = partner.best_step.get(b, 0)
         chosen = {"raw": " on the raw references", "cleaned": " on the cleaned targets"}.get(partner.chosen_targets(b))
+        if step == 0:
+            notes.append(
+                f"{b}: OIDN's network ships its own weights: no step of its fine-tune ({partner.step} steps"
+                f"{chosen or ''}) beat them on the val rows"
+            )
+            continue
         notes.append(
             f"{b}: OIDN's network ships step {step} of {partner.step} of its fine-tune{chosen or ''} "
             f"(val relMSE {min(scores) / partner.start_score(b):.3f}x OIDN's own weights)"
