@@ -4,6 +4,7 @@ Generator: l1_weight * L1 + adv_weight * (-mean D(fake)), 1 : 5e-3 (the paper's 
 ssim_weight > 0, ssim_weight * (1 - SSIM) of the display images that Table 1's 1-SSIM compares.
 Critic: (mean D(fake) - mean D(real)) / 2 + gp_weight * GP. The 1/2 on the Wasserstein term is the
 authors' (it averages their "real" and "fake" loss terms); the penalty is not halved.
+OIDN's networks, fine-tuned as admc's blend partner, have their own: L1, or OIDN's L1 + MS-SSIM mix (oidn_loss).
 All losses are computed in float32, whatever precision the networks ran in.
 """
 
