@@ -169,10 +169,9 @@ def psnr_torch(x: Tensor, ref: Tensor) -> Tensor:
     return torch.where(mse == 0, torch.full_like(db, PSNR_CAP_DB), db.clamp(max=PSNR_CAP_DB))
 
 
-def ssim_map_torch(a: Tensor, b: Tensor) -> Tensor:
-    """The SSIM map of `ssim` for (N, C, H, W) images of 8-bit values (any float, differentiable), inside
-    the window's radius strip: valid convolutions see no border, as `ssim` drops the strip. Both sides
-    need at least 11 pixels."""
+def ssim_moments_torch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """SSIM's local statistics of (N, C, H, W) images under its 11x11 Gaussian window, valid convolutions
+    (no border): the means, the variances and the covariance (mu_a, mu_b, var_a, var_b, cov)."""
     taps = torch.from_numpy(_gaussian_taps(SSIM_RADIUS)).to(a.device, a.dtype)
     channels = a.shape[1]
     across = taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1)
@@ -182,9 +181,14 @@ def ssim_map_torch(a: Tensor, b: Tensor) -> Tensor:
         return F.conv2d(F.conv2d(img, across, groups=channels), down, groups=channels)
 
     mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a**2
-    var_b = blur(b * b) - mu_b**2
-    cov = blur(a * b) - mu_a * mu_b
+    return mu_a, mu_b, blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+
+
+def ssim_map_torch(a: Tensor, b: Tensor) -> Tensor:
+    """The SSIM map of `ssim` for (N, C, H, W) images of 8-bit values (any float, differentiable), inside
+    the window's radius strip: valid convolutions see no border, as `ssim` drops the strip. Both sides
+    need at least 11 pixels."""
+    mu_a, mu_b, var_a, var_b, cov = ssim_moments_torch(a, b)
     c1, c2 = (SSIM_K1 * LDR_RANGE) ** 2, (SSIM_K2 * LDR_RANGE) ** 2
     return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
 

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from admc.common.metrics import GAMMA, LDR_RANGE, SSIM_K1, SSIM_K2, SSIM_RADIUS, SSIM_SIGMA, ssim_map_torch
+from admc.common.metrics import GAMMA, LDR_RANGE, SSIM_K1, SSIM_K2, SSIM_RADIUS, ssim_map_torch, ssim_moments_torch
 
 DISPLAY_OFFSET = 1e-5  # linear; keeps the gamma curve's slope finite at 0 (below 8-bit level 1, 5.1e-6)
 
@@ -67,20 +67,10 @@ def ms_ssim(a: Tensor, b: Tensor, data_range: float = 1.0, max_scales: int = 5) 
     scales = 1
     while scales < max_scales and min(a.shape[-2:]) >> scales >= 2 * SSIM_RADIUS + 1:
         scales += 1
-    offsets = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, device=a.device, dtype=a.dtype)
-    taps = torch.exp(-0.5 * offsets**2 / SSIM_SIGMA**2)
-    taps = taps / taps.sum()
-    channels = a.shape[1]
-    across, down = taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1), taps.view(1, 1, -1, 1).expand(channels, 1, -1, 1)
-
-    def blur(img: Tensor) -> Tensor:
-        return F.conv2d(F.conv2d(img, across, groups=channels), down, groups=channels)
-
     c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
     product = torch.ones(a.shape[:2], device=a.device, dtype=a.dtype)
     for scale in range(scales):
-        mu_a, mu_b = blur(a), blur(b)
-        var_a, var_b, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+        mu_a, mu_b, var_a, var_b, cov = ssim_moments_torch(a, b)
         term = (2 * cov + c2) / (var_a + var_b + c2)
         if scale == scales - 1:
             term = term * (2 * mu_a * mu_b + c1) / (mu_a**2 + mu_b**2 + c1)
