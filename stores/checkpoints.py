@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from admc.common.layout import branch_of
 from admc.errors import AdmcError
 from admc.stores.atomic import publishing
 
@@ -205,7 +206,7 @@ def _oidn_networks_of(obj: dict, path: str | os.PathLike) -> dict[str, dict[str,
         partner = obj.get("partner") or {}
         nets = {}
         for name, state in partner.get("nets", {}).items():  # a branch's candidates: "diffuse", "diffuse raw"
-            branch = name.split()[0]
+            branch = branch_of(name)
             nets[branch] = partner.get("best", {}).get(branch, state)
     if not (isinstance(nets, dict) and all(isinstance(state, dict) for state in nets.values())):
         raise CheckpointError(f"{path}: its {OIDN_NETWORKS} entry is not a state dict per branch")

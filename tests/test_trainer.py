@@ -316,7 +316,8 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
     (oidn_partner.CANDIDATES); the specular one trains on both targets from the same batches until the first
     validation, where the one with the lower val relMSE goes on alone; a checkpoint written after that resumes
     with the networks it holds. It trains with OIDN's own loss (train.oidn_loss), the other partner tests with L1."""
-    from admc.model.training.oidn_partner import RAW, start_partner
+    from admc.common.layout import RAW
+    from admc.model.training.oidn_partner import start_partner
 
     tmp = tmp_path_factory.mktemp("clean_store")
     store = build_tiny_store(tmp, size=64, patch=32, extra=["tile.clean_targets=true"])

@@ -4,6 +4,16 @@ from __future__ import annotations
 
 BRANCHES = ("diffuse", "specular")
 
+RAW = " raw"
+"""Suffix of a fine-tuned OIDN candidate network that learns from the raw references ("diffuse raw"); one
+named as its branch learns from the store's targets. Training names them, checkpoints store them by name."""
+
+
+def branch_of(candidate: str) -> str:
+    """The branch a fine-tuned OIDN candidate ("diffuse raw", "specular") denoises."""
+    return candidate.removesuffix(RAW)
+
+
 BASE_QUALITIES = {"oidn": {"diffuse": "high", "specular": "high"}, "oidn-fast": {"diffuse": "high", "specular": "fast"}}
 """The refining bases and the OIDN quality each branch's input is denoised at. OIDN `fast` takes about half
 of `high`'s time on a CPU (`balanced` runs as `high` there); on the specular branch, which OIDN denoises

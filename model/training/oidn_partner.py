@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from admc.common.layout import ALBEDO, NORMAL
+from admc.common.layout import ALBEDO, NORMAL, RAW, branch_of
 from admc.common.metrics import relmse_torch
 from admc.errors import TrainingError
 from admc.stores.patches import PatchReader
@@ -37,10 +37,6 @@ from .validation import to_linear
 PARTNER_SEED_OFFSET = 7919
 """The partner's batch stream differs from admc's branch streams (same store, same seed)."""
 
-
-RAW = " raw"
-"""Suffix of a candidate network that learns from the raw references ("diffuse raw"); one named as its branch
-learns from the store's targets."""
 
 CANDIDATES = {"diffuse": (RAW,), "specular": ("", RAW)}
 """What each branch's network learns from where the store keeps raw references beside cleaned targets
@@ -123,10 +119,6 @@ class Partner:
         if branch + RAW not in self.scores or branch in self.on_trial:
             return None
         return "raw" if self.candidates(branch) == [branch + RAW] else "cleaned"
-
-
-def branch_of(candidate: str) -> str:
-    return candidate.removesuffix(RAW)
 
 
 def start_partner(
