@@ -314,15 +314,16 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
 ):
     """A store tiled with tile.clean_targets keeps the raw references too: OIDN's diffuse network learns from them
     (oidn_partner.CANDIDATES); the specular one trains on both targets from the same batches until the first
-    validation, where the one with the lower val relMSE goes on alone; a checkpoint written after that resumes
-    with the networks it holds. It trains with OIDN's own loss (train.oidn_loss), the other partner tests with L1."""
+    validation, where the one with the lower val relMSE (train.oidn_select = "relmse") goes on alone; a
+    checkpoint written after that resumes with the networks it holds. It trains with OIDN's own loss
+    (train.oidn_loss), the other partner tests with L1."""
     from admc.common.layout import RAW
     from admc.model.training.oidn_partner import start_partner
 
     tmp = tmp_path_factory.mktemp("clean_store")
     store = build_tiny_store(tmp, size=64, patch=32, extra=["tile.clean_targets=true"])
     settings = dataclasses.replace(
-        SETTINGS, steps=1, val_every=2, oidn_blend=True, oidn_minutes=0.03, oidn_loss="l1_msssim"
+        SETTINGS, steps=1, val_every=2, oidn_blend=True, oidn_minutes=0.03, oidn_loss="l1_msssim", oidn_select="relmse"
     )
     result = train(store, tmp / "run", settings, TINY, progress=True)
     err = capsys.readouterr().err
@@ -331,7 +332,7 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
     assert any(n.startswith("diffuse: OIDN's network ships") and "on the raw references" in n for n in result.notes)
     assert "OIDN fine-tune step 2 specular, raw targets: val relMSE" in err
     kept = [name for name in partner["nets"] if name.startswith("specular")]
-    mine, raw = partner["scores"]["specular"][2], partner["scores"]["specular" + RAW][2]
+    mine, raw = partner["scores"]["specular"][2]["relmse"], partner["scores"]["specular" + RAW][2]["relmse"]
     assert kept == ["specular" + RAW if raw < mine else "specular"]  # the trial is over: one goes on
     dropped = "specular" if raw < mine else "specular" + RAW
     assert max(partner["scores"][dropped]) == 2  # the other one trained no further
@@ -344,6 +345,27 @@ def test_the_oidn_partner_on_a_clean_target_store_learns_raw_diffuse_and_tries_b
     assert set(resumed.nets) == set(partner["nets"]) == set(resumed.optimizers)
 
 
+def test_the_oidn_partner_can_rank_its_steps_by_relmse_and_hdr_flip_together(store, tmp_path, capsys):
+    """train.oidn_select = "relmse+flip": each validation also scores HDR-FLIP, and the shipped step is the one
+    with the lowest geometric mean of the two metrics' ratios to step 0 (OIDN's own weights)."""
+    settings = dataclasses.replace(
+        SETTINGS, steps=1, val_every=1, oidn_blend=True, oidn_minutes=0.03, oidn_select="relmse+flip"
+    )
+    result = train(store, tmp_path / "run", settings, TINY, progress=True)
+    assert "OIDN fine-tune step 0 diffuse: val relMSE" in capsys.readouterr().err
+    partner = load_checkpoint(result.checkpoint)["partner"]
+    for branch, steps in partner["scores"].items():
+        assert len(steps) >= 2 and all(set(s) == {"relmse", "hdr_flip"} for s in steps.values())
+        start = steps[0]
+        error = {
+            step: ((s["relmse"] / start["relmse"]) * (s["hdr_flip"] / start["hdr_flip"])) ** 0.5
+            for step, s in steps.items()
+        }
+        assert error[partner["best_step"][branch]] == min(error.values())
+        note = next(n for n in result.notes if n.startswith(f"{branch}: OIDN's network ships"))
+        assert "HDR-FLIP" in note or "no step of its fine-tune" in note
+
+
 def test_an_older_admcs_oidn_partner_state_is_refused_with_one_message():
     """Before the candidates, a checkpoint held one Adam for both OIDN networks: such a state cannot resume."""
     from admc.model.training.oidn_partner import start_partner
@@ -352,6 +374,9 @@ def test_an_older_admcs_oidn_partner_state_is_refused_with_one_message():
     partner = start_partner(["specular"], SETTINGS, None, torch.device("cpu"))
     with pytest.raises(TrainingError, match="written by an older admc, whose state this one cannot resume"):
         partner.load_state_dict({**old, "done": False})
+    relmse_only = {**old, "optimizers": {}, "scores": {"specular": {0: 0.01}}}  # before HDR-FLIP could rank steps
+    with pytest.raises(TrainingError, match="written by an older admc, whose state this one cannot resume"):
+        partner.load_state_dict({**relmse_only, "done": False})
 
 
 def test_oidn_minutes_without_a_blend_or_in_several_processes_is_refused(store, tmp_path):

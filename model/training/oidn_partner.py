@@ -4,34 +4,37 @@ OIDN cannot be retrained through its library, but its networks can be: model/net
 torch from the very weights the library runs. Before admc's own fine-tune, each branch's OIDN network (diffuse
 with albedo and normal, specular alone: how admc runs OIDN) trains for train.oidn_minutes on the store's train
 rows with train.oidn_loss in OIDN's PU domain (where it was trained), and keeps the validated step with the
-lowest mean val relMSE: the library's weights unless a later step beats them. On a store that keeps its raw
-references beside cleaned targets (tile.clean_targets), each branch first tries both targets (Partner). admc's
-blend share (train.oidn_blend) is then chosen against this partner, and the weights file ships it. On three domains of
-scripts/make_domain_scenes.py this took OIDN's error to 0.84-0.98x at 4 spp and about 0.9x at 16 and 64 spp
-(docs/results/2026-12-06-fine-tuned-oidn.md).
+lowest val error: the geometric mean of its mean val relMSE's and HDR-FLIP's ratios to the library's weights
+(train.oidn_select; relMSE alone with "relmse"), which stay unless a later step beats them. On a store that
+keeps its raw references beside cleaned targets (tile.clean_targets), each branch first tries both targets
+(Partner). admc's blend share (train.oidn_blend) is then chosen against this partner, and the weights file
+ships it. On three domains of scripts/make_domain_scenes.py this took OIDN's error to 0.84-0.98x at 4 spp and
+about 0.9x at 16 and 64 spp (docs/results/2026-12-06-fine-tuned-oidn.md).
 
 The phase is resumable: its state rides in the run's checkpoint (step 0 of admc's own steps).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
 from admc.common.layout import ALBEDO, NORMAL, RAW, branch_of
-from admc.common.metrics import relmse_torch
+from admc.common.metrics import hdr_flip, relmse_torch
 from admc.errors import TrainingError
 from admc.stores.patches import PatchReader
 
 from ..nets.losses import oidn_loss
 from ..nets.oidn_unet import OidnUNet, batch_exposure, network_input, oidn_unet, transfer
-from ..train_settings import TrainSettings
+from ..train_settings import OIDN_SELECTIONS, TrainSettings
 from .clock import Clock
-from .data import branch_seed, train_loader
+from .data import branch_seed, spread_rows, train_loader
 from .validation import to_linear
 
 PARTNER_SEED_OFFSET = 7919
@@ -44,6 +47,9 @@ CANDIDATES = {"diffuse": (RAW,), "specular": ("", RAW)}
 four domains measured, by 1-9%), the specular one both, until the first validation after step 0, then the
 better alone (which one pays flips by domain: docs/results/2026-12-06-fine-tuned-oidn.md)."""
 
+Scores = dict[str, float]
+"""A validation's mean val metrics: "relmse", and "hdr_flip" where the selection uses it."""
+
 
 @dataclass
 class Partner:
@@ -55,9 +61,10 @@ class Partner:
 
     nets: dict[str, OidnUNet]  # candidate -> network
     optimizers: dict[str, torch.optim.Optimizer]  # candidate -> its Adam
+    select: str  # train.oidn_select: which metrics rank the steps (OIDN_SELECTIONS)
     best: dict[str, dict[str, Tensor]] = field(default_factory=dict)  # branch -> state dict of the best step
     best_step: dict[str, int] = field(default_factory=dict)
-    scores: dict[str, dict[int, float]] = field(default_factory=dict)  # candidate -> step -> mean val relMSE
+    scores: dict[str, dict[int, Scores]] = field(default_factory=dict)  # candidate -> step -> its val metrics
     step: int = 0
     seconds: float = 0.0
     done: bool = False
@@ -84,7 +91,8 @@ class Partner:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        if "optimizers" not in state:
+        scores = [s for candidate in state.get("scores", {}).values() for s in candidate.values()]
+        if "optimizers" not in state or not all(isinstance(s, dict) for s in scores):
             raise TrainingError(
                 "the checkpoint's OIDN fine-tune was written by an older admc, whose state this one cannot resume; "
                 "start the run afresh (without --resume, in a new run.workdir or after removing the old run)"
@@ -105,13 +113,26 @@ class Partner:
             for b in dict.fromkeys(branch_of(name) for name in self.nets)
         }
 
-    def start_score(self, branch: str) -> float:
-        """The branch's val relMSE at step 0: OIDN's own weights (or the ones the run started from)."""
+    def start_scores(self, branch: str) -> Scores:
+        """The branch's val metrics at step 0: OIDN's own weights (or the ones the run started from)."""
         return next(scores[0] for name, scores in self.scores.items() if branch_of(name) == branch and 0 in scores)
 
-    def branch_scores(self, branch: str) -> list[float]:
-        """Every val relMSE of the branch's candidates, a dropped one's included."""
-        return [s for name, scores in self.scores.items() if branch_of(name) == branch for s in scores.values()]
+    def ratios(self, branch: str, scores: Scores) -> Scores:
+        """Each of `scores`' metrics over the branch's at step 0 (1 where both are 0)."""
+        start = self.start_scores(branch)
+        return {k: v / start[k] if start[k] else 1.0 for k, v in scores.items()}
+
+    def error(self, branch: str, scores: Scores) -> float:
+        """What ranks the branch's validated steps: the geometric mean of the selected metrics' ratios to
+        step 0 (1 at step 0)."""
+        ratios = self.ratios(branch, scores)
+        selected = OIDN_SELECTIONS[self.select]
+        return math.prod(ratios[k] for k in selected) ** (1 / len(selected))
+
+    def best_scores(self, branch: str) -> Scores:
+        """The val metrics of the branch's lowest-error validation, a dropped candidate's included."""
+        every = [s for name, scores in self.scores.items() if branch_of(name) == branch for s in scores.values()]
+        return min(every, key=lambda s: self.error(branch, s))
 
     def chosen_targets(self, branch: str) -> str | None:
         """What the branch's network learns from on a store with both targets ("raw" or "cleaned"); None on a
@@ -138,7 +159,7 @@ def start_partner(
             net.load_state_dict({k: v.float() for k, v in init[b].items()})
         nets[name] = net.to(device).train()
     optimizers = {name: torch.optim.Adam(net.parameters(), lr=settings.oidn_lr) for name, net in nets.items()}
-    return Partner(nets, optimizers)
+    return Partner(nets, optimizers, settings.oidn_select)
 
 
 def finetune_partner(
@@ -209,17 +230,19 @@ def finetune_partner(
 
 def _choose_targets(partner: Partner, show: Callable[[str], None]) -> None:
     """At the first validation after step 0, each branch on trial keeps the candidate with the lower val
-    relMSE (the store's targets on a tie) and drops the other with its optimizer."""
+    error (the store's targets on a tie) and drops the other with its optimizer."""
     for b in partner.on_trial:
         twin = b + RAW
         mine, raw = partner.scores.get(b, {}).get(partner.step), partner.scores.get(twin, {}).get(partner.step)
+        if raw is not None and mine is not None:
+            mine, raw = partner.error(b, mine), partner.error(b, raw)
         loser = twin if raw is None or mine is None or mine <= raw else b
         del partner.nets[loser], partner.optimizers[loser]
         if raw is not None and mine is not None:
             kept = "raw" if loser == b else "cleaned"
             show(
-                f"OIDN fine-tune {b}: goes on with the {kept} targets (val relMSE at step {partner.step}: "
-                f"cleaned {mine:.4g}, raw {raw:.4g})"
+                f"OIDN fine-tune {b}: goes on with the {kept} targets (val error at step {partner.step}: "
+                f"cleaned {mine:.4g}x OIDN's, raw {raw:.4g}x)"
             )
 
 
@@ -265,11 +288,30 @@ def _validate(partner: Partner, val: dict, batch_size: int, device: torch.device
             continue
         rows = val[b]
         reference = to_linear(rows["reference"], rows["features"], b)
-        score = float(relmse_torch(_run(net, rows, b, batch_size, device), reference).mean())
+        output = _run(net, rows, b, batch_size, device)
+        score = {"relmse": float(relmse_torch(output, reference).mean())}
+        if "hdr_flip" in OIDN_SELECTIONS[partner.select]:
+            score["hdr_flip"] = _mean_flip(output, reference)
         scores[partner.step] = score
-        if score <= min(partner.branch_scores(b)):
+        if partner.error(b, score) <= partner.error(b, partner.best_scores(b)):
             partner.best[b] = {k: v.detach().clone().cpu() for k, v in net.state_dict().items()}
             partner.best_step[b] = partner.step
         label = f"{b}, raw targets" if name.endswith(RAW) else b
-        line = f"OIDN fine-tune step {partner.step} {label}: val relMSE {score:.4g} ({score / scores[0]:.3f}x OIDN's"
-        show(line + f"; best step {partner.best_step[b]})")
+        ratios = partner.ratios(b, score)
+        metrics = ", ".join(f"{METRIC_LABELS[k]} {v:.4g} ({ratios[k]:.3f}x OIDN's)" for k, v in score.items())
+        show(f"OIDN fine-tune step {partner.step} {label}: val {metrics}; best step {partner.best_step[b]}")
+
+
+METRIC_LABELS = {"relmse": "relMSE", "hdr_flip": "HDR-FLIP"}
+
+FLIP_ROWS = 64
+"""HDR-FLIP scores at most this many val rows, spread over them: 0.03 CPU-seconds a 128x128 patch (1.4-2.0 s for
+the 48-60 val rows of two domains), so on a large val split it stays near 2 s a validation per branch."""
+
+
+def _mean_flip(output: Tensor, reference: Tensor) -> float:
+    """The mean HDR-FLIP of (N, 3, H, W) linear patches (FLIP_ROWS of them): what a viewer sees, which relMSE
+    under-weights (on one domain OIDN's longer fine-tune lowered the val relMSE and raised the HDR-FLIP)."""
+    rows = spread_rows(len(output), FLIP_ROWS)
+    pairs = zip(output[rows].float().numpy(), reference[rows].float().numpy())
+    return float(np.mean([hdr_flip(x.transpose(1, 2, 0), ref.transpose(1, 2, 0)) for x, ref in pairs]))

@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from admc.common.layout import branch_of
 from admc.errors import AdmcError, TrainingError
 from admc.stores import patches
 from admc.stores.checkpoints import (
@@ -44,7 +45,7 @@ from .clock import Clock
 from .data import branch_seed, load_rows, train_loader
 from .distributed import RankFailed, Ranks, agree, broadcast_modules, check_world, current, rank_device
 from .metrics_log import MetricsLog
-from .oidn_partner import Partner, finetune_partner, start_partner
+from .oidn_partner import METRIC_LABELS, Partner, finetune_partner, start_partner
 from .progress import ProgressWindow
 from .resume import check_resumable, load_init, rng_state, say_precision_change, seed_everything, set_rng_state
 from .selection import BestNetworks, selection_values
@@ -523,12 +524,11 @@ def _finish(run: _Run, start: int) -> TrainResult:
 
 
 def _partner_notes(partner: Partner) -> list[str]:
-    """What OIDN's fine-tune ships per branch: its step, what it learned from, and its val relMSE against
+    """What OIDN's fine-tune ships per branch: its step, what it learned from, and its val metrics against
     OIDN's own weights (or that those ship: no step beat them)."""
     notes = []
     for b in partner.shipped():
-        scores = partner.branch_scores(b)
-        if not scores:
+        if not any(branch_of(name) == b for name in partner.scores):
             continue
         step = partner.best_step.get(b, 0)
         chosen = {"raw": " on the raw references", "cleaned": " on the cleaned targets"}.get(partner.chosen_targets(b))
@@ -540,6 +540,11 @@ def _partner_notes(partner: Partner) -> list[str]:
             continue
         notes.append(
             f"{b}: OIDN's network ships step {step} of {partner.step} of its fine-tune{chosen or ''} "
-            f"(val relMSE {min(scores) / partner.start_score(b):.3f}x OIDN's own weights)"
+            f"(val {_ratio_text(partner.ratios(b, partner.best_scores(b)))} OIDN's own weights)"
         )
     return notes
+
+
+def _ratio_text(ratios: dict[str, float]) -> str:
+    """{"relmse": 0.8, "hdr_flip": 0.9} -> "relMSE 0.800x, HDR-FLIP 0.900x"."""
+    return ", ".join(f"{METRIC_LABELS[k]} {v:.3f}x" for k, v in ratios.items())
