@@ -118,7 +118,7 @@ class Partner:
         return next(scores[0] for name, scores in self.scores.items() if branch_of(name) == branch and 0 in scores)
 
     def ratios(self, branch: str, scores: Scores) -> Scores:
-        """Each of `scores`' metrics over the branch's at step 0 (1 where both are 0)."""
+        """Each of `scores`' metrics over the branch's at step 0 (1 where step 0's is 0)."""
         start = self.start_scores(branch)
         return {k: v / start[k] if start[k] else 1.0 for k, v in scores.items()}
 

@@ -23,7 +23,6 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from admc.common.layout import branch_of
 from admc.errors import AdmcError, TrainingError
 from admc.stores import patches
 from admc.stores.checkpoints import (
@@ -528,9 +527,9 @@ def _partner_notes(partner: Partner) -> list[str]:
     OIDN's own weights (or that those ship: no step beat them)."""
     notes = []
     for b in partner.shipped():
-        if not any(branch_of(name) == b for name in partner.scores):
+        if b not in partner.best_step:  # never validated (its step 0 validation sets it)
             continue
-        step = partner.best_step.get(b, 0)
+        step = partner.best_step[b]
         chosen = {"raw": " on the raw references", "cleaned": " on the cleaned targets"}.get(partner.chosen_targets(b))
         if step == 0:
             notes.append(
