@@ -8,8 +8,9 @@ backward and Adam, in three forms side by side:
 - `nchw float32`: the layout the fine-tune used before;
 - `channels_last float32`: what it runs (model/training/oidn_partner.py);
 - `channels_last bf16`: bf16 autocast, the form admc's own networks take on CPUs with fast bf16; faster there,
-  but OIDN's networks trained so ended 3-5% worse in val HDR-FLIP (docs/results/2026-12-06-fine-tuned-oidn.md),
-  so the fine-tune does not use it. On a CPU without fast bf16 it is emulated and slow.
+  but OIDN's networks trained so left 3-5% more HDR-FLIP on a product domain's test frames (3-9% on its val
+  frames; docs/results/2026-12-06-fine-tuned-oidn.md), so the fine-tune does not use it. On a CPU without
+  fast bf16 it is emulated and slow.
 
 Inputs are random tensors in the networks' value ranges (the data loader is not timed); the forms take turns
 step by step so a busy machine slows them alike; figures are medians over --steps, and the last line gives each
