@@ -117,6 +117,7 @@ class TileConfig:
     crops_per_scene: int
     candidates_per_crop: int
     split: tuple[float, float, float]
+    split_exact: bool
     seed: int
     val_set: str
     oidn_base: bool

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from admc.errors import StageError
 from admc.model import transforms as tf
 from admc.pipeline.config import load_config
 from admc.pipeline.tiler import tile
@@ -197,6 +198,50 @@ def test_split_is_by_scene_and_stable():
     assert splits == [tile.split_of(s, (0.8, 0.1, 0.1), 0) for s in ids]
     share = {s: splits.count(s) / len(ids) for s in patches.SPLITS}
     assert 0.72 < share["train"] < 0.88 and 0.05 < share["val"] < 0.15 and 0.05 < share["test"] < 0.15
+
+
+@pytest.mark.parametrize(
+    "n, fractions, counts",
+    [
+        (20, (0.6, 0.15, 0.25), [12, 3, 5]),
+        (24, (0.6, 0.15, 0.25), [14, 4, 6]),
+        (8, (0.8, 0.1, 0.1), [6, 1, 1]),
+        (3, (0.6, 0.15, 0.25), [1, 1, 1]),  # every nonzero fraction gets a scene where n allows
+        (2, (0.6, 0.15, 0.25), [1, 0, 1]),  # ... and train keeps its one
+        (5, (1.0, 0.0, 0.0), [5, 0, 0]),
+    ],
+)
+def test_exact_split_counts_are_the_shares_rounded(n, fractions, counts):
+    assert tile.exact_counts(n, fractions) == counts
+
+
+def test_exact_split_ranks_the_hash_and_cuts_it_at_the_shares():
+    """20 frames whose hash alone gives one val frame get 12 / 3 / 5, keeping the hash's order: every
+    train frame draws below every val frame, every val frame below every test frame."""
+    ids = [f"xml-interior-2-{i:03d}" for i in range(20)]
+    by_hash = tile.assign_splits(ids, (0.6, 0.15, 0.25), 17)
+    assert [list(by_hash.values()).count(s) for s in patches.SPLITS] == [14, 1, 5]
+    exact = tile.assign_splits(ids, (0.6, 0.15, 0.25), 17, exact=True)
+    assert [list(exact.values()).count(s) for s in patches.SPLITS] == [12, 3, 5]
+    draws = {s: [tile._draw(i, 17) for i in ids if exact[i] == s] for s in patches.SPLITS}
+    assert max(draws["train"]) < min(draws["val"]) and max(draws["val"]) < min(draws["test"])
+    assert tile.assign_splits(ids[::-1], (0.6, 0.15, 0.25), 17, exact=True) == exact
+    assert by_hash == {i: tile.split_of(i, (0.6, 0.15, 0.25), 17) for i in ids}
+
+
+def test_a_store_that_holds_a_moved_scene_is_refused(tmp_path, variant):
+    """With exact splits a fourth scene moves room-0000 from val to train: tiling on into the same store
+    would train on a frame it validated on, so the store is refused with the scene named."""
+    exact = ["tile.split_exact=true", "tile.crops_per_scene=1"]
+    cfg = load_config(None, [f"run.workdir='{tmp_path}'", *tiny_overrides(3), *exact])
+    build_dataset(cfg, progress=False)
+    assert patches.list_scenes(tmp_path / cfg.tile.store, "val") == ["room-0000"]
+    grown = load_config(None, [f"run.workdir='{tmp_path}'", *tiny_overrides(4), *exact])
+    with pytest.raises(StageError, match=r"holds room-0000 in its val split, and tile.split now puts it in train"):
+        build_dataset(grown, progress=False)
+    assert patches.list_scenes(tmp_path / cfg.tile.store, "val") == ["room-0000"]  # nothing rewritten
+    moved = load_config(None, [f"run.workdir='{tmp_path}'", *tiny_overrides(4), *exact, "tile.store='grown.zarr'"])
+    assert patches.list_scenes(build_dataset(moved, progress=False).store, "train").count("room-0000") == 1
 
 
 def test_crops_favour_noisy_regions():

@@ -36,6 +36,7 @@ def store_attributes(cfg: Config) -> dict:
             "crops_per_scene": cfg.tile.crops_per_scene,
             "candidates_per_crop": cfg.tile.candidates_per_crop,
             "split": list(cfg.tile.split),
+            **({"split_exact": True} if cfg.tile.split_exact else {}),
             "seed": cfg.tile.seed,
             **({"clean_targets": True} if cfg.tile.clean_targets else {}),
         },
@@ -48,14 +49,27 @@ def dataset_splits(cfg: Config, left_out: list[SceneError] | None = None) -> dic
     """{scene id: (spec, split)} of what the patch store holds: the corpus split by tile.split, except
     that with tile.val_set = "ood" the val split is the out-of-family set (checkpoints are then selected
     on scenes unlike the training ones) and the corpus's own val scenes are left out."""
-    chosen = {
-        spec.scene_id: (spec, tile.split_of(spec.scene_id, cfg.tile.split, cfg.tile.seed))
-        for spec in render.corpus(cfg, left_out)
-    }
+    specs = render.corpus(cfg, left_out)
+    splits = tile.assign_splits([s.scene_id for s in specs], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact)
+    chosen = {spec.scene_id: (spec, splits[spec.scene_id]) for spec in specs}
     if cfg.tile.val_set == "ood":
         chosen = {key: value for key, value in chosen.items() if value[1] != "val"}
         chosen.update({spec.scene_id: (spec, "val") for spec in render.ood_corpus(cfg)})
     return chosen
+
+
+def _check_unmoved(store: Path, splits: dict[str, tuple[SceneSpec, str]]) -> None:
+    """A scene tiled into one split and now assigned another (tile.split_exact recomputes the cuts from the
+    whole corpus, so adding frames can move one) would train on frames it validates or tests on."""
+    for split in patches.SPLITS:
+        for scene_id in patches.list_scenes(store, split):
+            now = splits.get(scene_id, (None, split))[1]
+            if now != split:
+                raise StageError(
+                    f"{store}: holds {scene_id} in its {split} split, and tile.split now puts it in {now} "
+                    "(with tile.split_exact the corpus's size sets the cuts); tile into a new store: "
+                    "--set tile.store=<new name> (the renders are cached)"
+                )
 
 
 def _check_val_set(store: Path, val_ids: set[str], cfg: Config) -> None:
@@ -78,6 +92,7 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     renders = render.render_tasks(cfg, specs)
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
+    _check_unmoved(store_path, splits)
     _check_val_set(store_path, {scene_id for scene_id, (_, split) in splits.items() if split == "val"}, cfg)
     cache = open_cache(cfg)
     if not render_missing:

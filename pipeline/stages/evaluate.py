@@ -51,9 +51,9 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
     on enough images whatever the corpus size. The ood split is the out-of-family set alone."""
     if cfg.eval.split == "ood":
         return render.ood_corpus(cfg)
-    chosen = [
-        s for s in render.corpus(cfg) if tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) == cfg.eval.split
-    ]
+    corpus = render.corpus(cfg)
+    splits = tile.assign_splits([s.scene_id for s in corpus], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact)
+    chosen = [s for s in corpus if splits[s.scene_id] == cfg.eval.split]
     if cfg.eval.split == "test":
         families = list(cfg.eval.test_families)
         try:

@@ -92,7 +92,9 @@ def check_splits(cfg: Config) -> None:
             "the corpus is empty: corpus.n_scenes = 0 and no scene in corpus.xml_dirs or corpus.blend_dirs; "
             "name your folder of frames, e.g. --set 'corpus.xml_dirs=[\"/path/to/frames\"]'"
         )
-    counts = Counter(tile.split_of(s.scene_id, cfg.tile.split, cfg.tile.seed) for s in specs)
+    counts = Counter(
+        tile.assign_splits([s.scene_id for s in specs], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact).values()
+    )
     corpus = f"the {len(specs)}-scene corpus (tile.split = {list(cfg.tile.split)}, tile.seed = {cfg.tile.seed})"
     if not counts["train"]:
         raise ConfigError(

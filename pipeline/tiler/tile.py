@@ -5,9 +5,10 @@ the same reference crop. Selection favours informative regions (KPCN-style impor
 candidates are drawn uniformly and kept with probability proportional to their relative noise
 plus reference edge strength, with a floor so flat regions still appear. Val scenes are cut on a
 grid that covers each frame instead, so validation scores whole frames as the evaluation does.
-Splits are assigned per scene by a stable hash, never per patch, and never move when the corpus
-grows. With `refiner_base`, OIDN denoises each whole noisy image per branch (as inference does) at
-the qualities of that base and its crops are stored as the rows' bases, the input of an admc+oidn
+Splits are assigned per scene by a stable hash, never per patch: by the hash alone a scene never
+moves when the corpus grows; tile.split_exact ranks the hashes and cuts them at exact shares instead.
+With `refiner_base`, OIDN denoises each whole noisy image per branch (as inference does) at the
+qualities of that base and its crops are stored as the rows' bases, the input of an admc+oidn
 refiner. With `noise_maps`, each branch's noise map (from the render's variance buffer:
 transforms.noise_forward) is stored per row, what model.noise_input reads.
 """
@@ -29,12 +30,46 @@ SPLITS = patches.SPLITS
 NOISE_FLOOR = 0.1  # share of the mean score every candidate gets, so flat regions are not excluded
 
 
-def split_of(scene_id: str, fractions: tuple[float, float, float], seed: int) -> str:
-    """Stable per-scene split: a hash of (seed, scene id) mapped to [0, 1) against the fractions."""
+def _draw(scene_id: str, seed: int) -> float:
+    """The scene's place in [0, 1): a hash of (seed, scene id), the same on every machine."""
     digest = hashlib.sha256(f"{seed}/{scene_id}".encode()).digest()
-    u = int.from_bytes(digest[:8], "little") / 2**64
+    return int.from_bytes(digest[:8], "little") / 2**64
+
+
+def split_of(scene_id: str, fractions: tuple[float, float, float], seed: int) -> str:
+    """Stable per-scene split: the scene's hash against the fractions."""
     edges = np.cumsum(fractions) / sum(fractions)
-    return SPLITS[int(np.searchsorted(edges, u, side="right"))]
+    return SPLITS[int(np.searchsorted(edges, _draw(scene_id, seed), side="right"))]
+
+
+def assign_splits(
+    scene_ids: list[str], fractions: tuple[float, float, float], seed: int, exact: bool = False
+) -> dict[str, str]:
+    """{scene id: split}. Per scene by hash (split_of) the splits never move as the corpus grows, but a
+    small corpus gets its fractions only on average: 20 frames at 60/15/25% can split 14/1/5, one val
+    frame to choose every step on. `exact` ranks the same hashes and cuts them at each split's share of
+    the corpus (12/3/5): a frame near a cut can move when frames are added or removed."""
+    if not exact:
+        return {scene_id: split_of(scene_id, fractions, seed) for scene_id in scene_ids}
+    ranked = sorted(scene_ids, key=lambda scene_id: (_draw(scene_id, seed), scene_id))
+    counts = exact_counts(len(ranked), fractions)
+    names = [split for split, count in zip(SPLITS, counts) for _ in range(count)]
+    return dict(zip(ranked, names))
+
+
+def exact_counts(n: int, fractions: tuple[float, float, float]) -> list[int]:
+    """Scenes per split for `n` scenes: the fractions' shares rounded by largest remainder, then each
+    split with a nonzero fraction given at least one scene (taken from the largest) where n allows."""
+    shares = np.asarray(fractions, dtype=np.float64) / sum(fractions) * n
+    counts = np.floor(shares).astype(int)
+    for i in np.argsort(-(shares - counts), kind="stable")[: n - counts.sum()]:
+        counts[i] += 1
+    for i in np.flatnonzero((np.asarray(fractions) > 0) & (counts == 0)):
+        largest = int(np.argmax(counts))
+        if counts[largest] > 1:
+            counts[largest] -= 1
+            counts[i] += 1
+    return counts.tolist()
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
