@@ -1,5 +1,5 @@
-"""What the render and dataset stages share: the task cache of a config, and one run of the corpus's
-tasks that links the finished renders and then reports every failure together."""
+"""What the stages share: the task cache of a config, one run of the corpus's tasks that links the finished
+renders and then reports every failure together, and the split of the corpus's scenes."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from admc.pipeline.engine import runner, slurm
 from admc.pipeline.engine.cache import Task, TaskCache, TaskError
 from admc.pipeline.render import backends as render
 from admc.pipeline.render.scenes import NotAScene, SceneError, SceneSpec
+from admc.pipeline.tiler import tile
 from admc.stores.atomic import read_json
 
 CACHED_STAGES = ("render", "tile")
@@ -22,6 +23,12 @@ def check_cached_stage(stage: str | None) -> None:
     """Refuse a stage name the cache never holds (`cache --stage renders` would match nothing, silently)."""
     if stage is not None and stage not in CACHED_STAGES:
         raise StageError(f"--stage {stage!r}: not a cached stage; the stages are {', '.join(CACHED_STAGES)}")
+
+
+def corpus_splits(cfg: Config, specs: list[SceneSpec]) -> dict[str, str]:
+    """{scene id: split} by tile.split, tile.seed and tile.split_exact: the one rule that tiling, training's
+    checks and evaluation read, so the test frames evaluation scores are never frames that trained."""
+    return tile.assign_splits([s.scene_id for s in specs], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact)
 
 
 def open_cache(cfg: Config) -> TaskCache:

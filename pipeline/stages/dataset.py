@@ -16,7 +16,14 @@ from admc.pipeline.engine import runner
 from admc.pipeline.engine.cache import Task, code_version
 from admc.pipeline.render import backends as render
 from admc.pipeline.render.scenes import SceneError, SceneSpec
-from admc.pipeline.stages.corpus import StageResult, open_cache, read_sidecars, run_corpus, skipped_files
+from admc.pipeline.stages.corpus import (
+    StageResult,
+    corpus_splits,
+    open_cache,
+    read_sidecars,
+    run_corpus,
+    skipped_files,
+)
 from admc.stores import patches
 
 TILE_CODE = code_version(tile, buffers, transforms, oidn_base, oidn, patches)
@@ -50,7 +57,7 @@ def dataset_splits(cfg: Config, left_out: list[SceneError] | None = None) -> dic
     that with tile.val_set = "ood" the val split is the out-of-family set (checkpoints are then selected
     on scenes unlike the training ones) and the corpus's own val scenes are left out."""
     specs = render.corpus(cfg, left_out)
-    splits = tile.assign_splits([s.scene_id for s in specs], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact)
+    splits = corpus_splits(cfg, specs)
     chosen = {spec.scene_id: (spec, splits[spec.scene_id]) for spec in specs}
     if cfg.tile.val_set == "ood":
         chosen = {key: value for key, value in chosen.items() if value[1] != "val"}

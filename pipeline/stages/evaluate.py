@@ -13,7 +13,6 @@ from admc.common.metrics import METRICS
 from admc.errors import AdmcError, StageError
 from admc.model.inference.options import DenoiserOptions
 from admc.pipeline.config import Config
-from admc.pipeline.tiler import tile
 from admc.pipeline.evaluation import html, scoring
 from admc.pipeline.evaluation.baselines import (
     Denoiser,
@@ -28,6 +27,7 @@ from admc.pipeline.evaluation.table1 import build_table1
 from admc.pipeline.render import backends as render
 from admc.pipeline.render import scenes
 from admc.pipeline.render.scenes import SceneSpec
+from admc.pipeline.stages.corpus import corpus_splits
 from admc.pipeline.stages.render import render_corpus
 from admc.pipeline.weights import default_weights, load_model
 
@@ -52,7 +52,7 @@ def eval_scenes(cfg: Config) -> list[SceneSpec]:
     if cfg.eval.split == "ood":
         return render.ood_corpus(cfg)
     corpus = render.corpus(cfg)
-    splits = tile.assign_splits([s.scene_id for s in corpus], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact)
+    splits = corpus_splits(cfg, corpus)
     chosen = [s for s in corpus if splits[s.scene_id] == cfg.eval.split]
     if cfg.eval.split == "test":
         families = list(cfg.eval.test_families)

@@ -12,8 +12,8 @@ from admc.model.training import distributed
 from admc.model.training.distributed import check_world
 from admc.model.training.trainer import TrainResult, check_fresh_start, train
 from admc.pipeline.config import Config
-from admc.pipeline.tiler import tile
 from admc.pipeline.render import backends as render
+from admc.pipeline.stages.corpus import corpus_splits
 from admc.pipeline.stages.dataset import build_dataset
 from admc.pipeline.weights import shipped_mismatch, shipped_weights, train_dir
 from admc.stores.checkpoints import CHECKPOINT_NAME, WEIGHTS_NAME, load_checkpoint, read_networks
@@ -92,9 +92,7 @@ def check_splits(cfg: Config) -> None:
             "the corpus is empty: corpus.n_scenes = 0 and no scene in corpus.xml_dirs or corpus.blend_dirs; "
             "name your folder of frames, e.g. --set 'corpus.xml_dirs=[\"/path/to/frames\"]'"
         )
-    counts = Counter(
-        tile.assign_splits([s.scene_id for s in specs], cfg.tile.split, cfg.tile.seed, cfg.tile.split_exact).values()
-    )
+    counts = Counter(corpus_splits(cfg, specs).values())
     corpus = f"the {len(specs)}-scene corpus (tile.split = {list(cfg.tile.split)}, tile.seed = {cfg.tile.seed})"
     if not counts["train"]:
         raise ConfigError(
