@@ -80,6 +80,7 @@ class RenderConfig:
     resolution: tuple[int, int]
     spp: tuple[int, ...]
     reference_spp: int
+    val_reference_spp: int
     max_depth: int
     seed: int
     max_spp_per_pass: int
@@ -101,6 +102,11 @@ class RenderConfig:
             self.reference_spp > max(self.spp),
             "reference_spp",
             f"must exceed every input spp (max {max(self.spp)}), got {self.reference_spp}",
+        )
+        require(
+            self.val_reference_spp == 0 or self.val_reference_spp > max(self.spp),
+            "val_reference_spp",
+            f"must be 0 (reference_spp) or exceed every input spp (max {max(self.spp)}), got {self.val_reference_spp}",
         )
         require(1 <= self.max_depth <= 64, "max_depth", f"must be in 1..64, got {self.max_depth}")
         require(self.max_spp_per_pass >= 1, "max_spp_per_pass", "must be >= 1")

@@ -1,5 +1,6 @@
 """Render + tile end to end: the patch store holds exactly what the EXRs say, incrementally."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -7,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from admc.errors import StageError
+from admc.errors import ConfigError, StageError
 from admc.model import transforms as tf
 from admc.pipeline.config import load_config
 from admc.pipeline.tiler import tile
@@ -244,6 +245,26 @@ def test_a_store_that_holds_a_moved_scene_is_refused(tmp_path, variant):
     assert patches.list_scenes(build_dataset(moved, progress=False).store, "train").count("room-0000") == 1
 
 
+def test_partner_targets_are_raw_where_converged_and_cleaned_where_heavy_tailed():
+    """The raw reference's weight falls from 1 to 0 as its relative standard deviation (7x7 mean of its
+    variance layer over the 7x7 mean value) goes through tile.UNCONVERGED_REL_STD; its cleaned twin fills in."""
+    low, high = tile.UNCONVERGED_REL_STD
+    rel_std = np.repeat([0.5 * low, low, (low + high) / 2, high, 2 * high], 8).astype(
+        np.float32
+    )  # 5 bands of 8 columns
+    value = np.full((20, 40, 3), 2.0, np.float32)
+    raw = {
+        "diffuse": value,
+        "diffuse_var": np.broadcast_to((rel_std * 2.0) ** 2, (20, 40))[..., None] * np.ones(3, np.float32),
+    }
+    cleaned = {"diffuse": np.full_like(value, 3.0)}
+    weight = tile.converged_share(raw, "diffuse")[10, 4::8, 0]  # each band's centre column: its 7x7 window within
+    np.testing.assert_allclose(weight, [1.0, 1.0, 0.5, 0.0, 0.0], atol=1e-5)
+    target = tile.partner_references(raw, cleaned)
+    assert set(target) == {"diffuse"}
+    np.testing.assert_allclose(target["diffuse"][10, 4::8, 0], 2.0 * weight + 3.0 * (1 - weight), rtol=1e-6)
+
+
 def test_crops_favour_noisy_regions():
     score = np.zeros((64, 64))
     score[:, 32:] = 1.0  # the right half is noisy
@@ -452,10 +473,53 @@ def test_noise_maps_of_poisoned_variance_are_finite(tmp_path):
         assert values.shape == (4, 1, 16, 16) and np.isfinite(values).all() and (values >= 0).all()
 
 
+def test_val_references_are_rendered_at_val_reference_spp_by_render_and_dataset_alike(tmp_path):
+    """render.val_reference_spp: the val scene's reference (what selection scores against) is a render of its own
+    at that spp, the train scene's stays at reference_spp; `admc-pipe render` renders the same, so tiling after
+    it renders nothing; the val rows' targets are that reference's crops, and eval of the val split scores it."""
+    from admc.pipeline.render.variants import use_variant
+    from admc.pipeline.stages.evaluate import scoring_config
+    from admc.pipeline.stages.render import render_corpus
+
+    use_variant("auto")
+    cfg = load_config(
+        None,
+        [
+            f"run.workdir='{tmp_path}'",
+            *tiny_overrides(2),
+            "tile.split=[0.5, 0.5, 0.0]",
+            "tile.seed=1",
+            "render.val_reference_spp=24",
+        ],
+    )  # one of each
+    rendered = render_corpus(cfg, progress=False)
+    result = build_dataset(cfg, progress=False)
+    assert result.executed == 2  # the two tiles: every render was already there
+    assert {s["split"] for s in result.tiles} == {"train", "val"}
+    for summary in result.tiles:
+        sidecar = json.loads((rendered.renders_dir / summary["scene_id"] / "reference.json").read_text())
+        assert sidecar["spp"] == (24 if summary["split"] == "val" else 16)
+    val_id = next(s["scene_id"] for s in result.tiles if s["split"] == "val")
+    reference = tile._clean(exr.read_exr(result.renders_dir / val_id / "reference.exr"), {}, "reference")
+    rows = patches.PatchReader(result.store, "val", branch="diffuse")
+    y, x = _origin(result.store, f"val/{val_id}", rows.locate(0)[1])
+    layers = exr.read_exr(result.renders_dir / val_id / f"spp{rows[0]['spp']:04d}.exr")
+    want = tf.diffuse_forward(reference["diffuse"], layers["albedo"])[y : y + 32, x : x + 32].transpose(2, 0, 1)
+    np.testing.assert_array_equal(rows[0]["reference"], want.astype(np.float16).astype(np.float32))
+    val_eval = load_config(
+        None, [f"run.workdir='{tmp_path}'", *tiny_overrides(2), "render.val_reference_spp=24", "eval.split=val"]
+    )
+    assert scoring_config(val_eval).render.reference_spp == 24
+    assert scoring_config(load_config(None, ["render.val_reference_spp=128"])).render.reference_spp == 384  # test split
+    with pytest.raises(ConfigError, match="val_reference_spp"):
+        load_config(None, ["render.val_reference_spp=4"])
+
+
 def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(tmp_path):
     """tile.clean_targets: each train row's target is OIDN's per-branch output on the sanitised reference (the
     refiner's base function at `high`), transformed as the raw reference would be; noisy rows and features
-    are untouched. Train rows keep the raw reference beside it (what OIDN's fine-tune tries too); val rows keep
+    are untouched. Train rows keep the raw reference beside it where it has converged (what OIDN's fine-tune tries
+    too: tile.partner_references); val rows keep
     only the raw reference (OIDN's output would favour OIDN in validation). The store records it, so a store
     tiled on raw references refuses the clean config."""
     from admc.model.inference.oidn_base import oidn_bases
@@ -503,7 +567,13 @@ def test_clean_targets_are_oidn_on_the_reference_and_need_a_store_of_their_own(t
                 )[y : y + 32, x : x + 32].transpose(2, 0, 1)
                 np.testing.assert_array_equal(row["reference"], want.astype(np.float16).astype(np.float32))
                 assert not np.array_equal(row["reference"], raw_row["reference"])
-                np.testing.assert_array_equal(row["raw_reference"], raw_row["reference"])
+                partner = tile.partner_references(reference, bases)[branch]
+                want_raw = (
+                    tf.diffuse_forward(partner, layers["albedo"])
+                    if branch == "diffuse"
+                    else tf.specular_forward(partner)
+                )[y : y + 32, x : x + 32].transpose(2, 0, 1)
+                np.testing.assert_array_equal(row["raw_reference"], want_raw.astype(np.float16).astype(np.float32))
     mixed = load_config(None, [*overrides, "tile.clean_targets=true"])
     with pytest.raises(patches.PatchStoreError, match="clean_targets"):
         build_dataset(mixed, progress=False)  # the raw store (patches.zarr) is refused, naming the key

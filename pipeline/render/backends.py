@@ -5,6 +5,8 @@ tasks keep their own code version, so adding Cycles re-rendered no Mitsuba scene
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from admc.pipeline.config import Config
 from admc.pipeline.engine.cache import Task
 from admc.pipeline.render import tasks as mitsuba
@@ -29,8 +31,21 @@ def corpus(cfg: Config, left_out: list[SceneError] | None = None) -> list:
     return specs
 
 
-def render_tasks(cfg: Config, specs: list) -> dict[str, dict[str, Task]]:
-    """Per scene: {"spp0004": task, ..., "reference": task}, in corpus order, whichever renderer renders it."""
+def render_tasks(cfg: Config, specs: list, val_ids: frozenset[str] = frozenset()) -> dict[str, dict[str, Task]]:
+    """Per scene: {"spp0004": task, ..., "reference": task}, in corpus order, whichever renderer renders it.
+    `val_ids`: the scenes the store validates on, whose references are rendered at render.val_reference_spp
+    where that is set (here, so that the renderers' own code, which keys their caches, stays as it was)."""
+    if not (cfg.render.val_reference_spp and val_ids):
+        return _render_tasks(cfg, specs)
+    val_cfg = replace(cfg, render=replace(cfg.render, reference_spp=cfg.render.val_reference_spp))
+    tasks = {
+        **_render_tasks(cfg, [spec for spec in specs if spec.scene_id not in val_ids]),
+        **_render_tasks(val_cfg, [spec for spec in specs if spec.scene_id in val_ids]),
+    }
+    return {spec.scene_id: tasks[spec.scene_id] for spec in specs}
+
+
+def _render_tasks(cfg: Config, specs: list) -> dict[str, dict[str, Task]]:
     blend = [spec for spec in specs if cycles.is_blend(spec)]
     others = [spec for spec in specs if not cycles.is_blend(spec)]
     tasks = {**(mitsuba.render_tasks(cfg, others) if others else {}), **cycles.blend_render_tasks(cfg, blend)}

@@ -65,11 +65,19 @@ def dataset_splits(cfg: Config, left_out: list[SceneError] | None = None) -> dic
     return chosen
 
 
-def _check_unmoved(store: Path, splits: dict[str, tuple[SceneSpec, str]]) -> None:
-    """A scene tiled into one split and now assigned another (tile.split_exact recomputes the cuts from the
-    whole corpus, so adding frames can move one) would train on frames it validates or tests on."""
+def val_scenes(splits: dict[str, tuple[SceneSpec, str]]) -> frozenset[str]:
+    """The scenes the store validates on: their references are rendered at render.val_reference_spp."""
+    return frozenset(scene_id for scene_id, (_, split) in splits.items() if split == "val")
+
+
+def _check_store_matches(store: Path, splits: dict[str, tuple[SceneSpec, str]], cfg: Config) -> None:
+    """Every scene the store holds must sit where the config now puts it. A scene tiled into one split and now
+    assigned another (tile.split_exact recomputes the cuts from the whole corpus, so adding frames can move
+    one) would train on frames it validates or tests on; a val split mixing corpus and out-of-family scenes
+    (tile.val_set changed) would select on neither."""
     for split in patches.SPLITS:
-        for scene_id in patches.list_scenes(store, split):
+        stored = patches.list_scenes(store, split)
+        for scene_id in stored:
             now = splits.get(scene_id, (None, split))[1]
             if now != split:
                 raise StageError(
@@ -77,17 +85,12 @@ def _check_unmoved(store: Path, splits: dict[str, tuple[SceneSpec, str]]) -> Non
                     "(with tile.split_exact the corpus's size sets the cuts); tile into a new store: "
                     "--set tile.store=<new name> (the renders are cached)"
                 )
-
-
-def _check_val_set(store: Path, val_ids: set[str], cfg: Config) -> None:
-    """A store's val split must hold the scenes tile.val_set names and no others: validating on a mix of
-    corpus and out-of-family scenes would select on neither."""
-    strays = sorted(set(patches.list_scenes(store, "val")) - val_ids)
-    if strays:
-        raise StageError(
-            f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
-            f"tile.val_set = {cfg.tile.val_set!r} does not put there; use another tile.store"
-        )
+        strays = sorted(scene_id for scene_id in stored if scene_id not in splits)
+        if split == "val" and strays:
+            raise StageError(
+                f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
+                f"tile.val_set = {cfg.tile.val_set!r} does not put there; use another tile.store"
+            )
 
 
 def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = True) -> StageResult:
@@ -96,11 +99,10 @@ def build_dataset(cfg: Config, progress: bool = True, render_missing: bool = Tru
     splits = dataset_splits(cfg, left_out)
     specs = [spec for spec, _ in splits.values()]
     check_patch_fits(cfg, specs)
-    renders = render.render_tasks(cfg, specs)
+    renders = render.render_tasks(cfg, specs, val_scenes(splits))
     store_path = cfg.workdir_path(cfg.tile.store).resolve()
     patches.create_store(store_path, store_attributes(cfg))
-    _check_unmoved(store_path, splits)
-    _check_val_set(store_path, {scene_id for scene_id, (_, split) in splits.items() if split == "val"}, cfg)
+    _check_store_matches(store_path, splits, cfg)
     cache = open_cache(cfg)
     if not render_missing:
         missing = [t.label for levels in renders.values() for t in levels.values() if not cache.is_done(t)]

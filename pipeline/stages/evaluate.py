@@ -169,10 +169,12 @@ def optix_denoisers(setting: str) -> tuple[list[Denoiser], dict[str, str]]:
 
 
 def scoring_config(cfg: Config) -> Config:
-    """The config whose renders eval scores: its references at eval.reference_spp where that is set."""
-    if not cfg.eval.reference_spp:
+    """The config whose renders eval scores: its references at eval.reference_spp where that is set, else
+    the val split's at render.val_reference_spp (the references its rows were cut from)."""
+    spp = cfg.eval.reference_spp or (cfg.eval.split == "val" and cfg.render.val_reference_spp)
+    if not spp:
         return cfg
-    return replace(cfg, render=replace(cfg.render, reference_spp=cfg.eval.reference_spp))
+    return replace(cfg, render=replace(cfg.render, reference_spp=spp))
 
 
 def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> EvalOutcome:

@@ -19,6 +19,7 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import uniform_filter
 
 from admc.common.buffers import DENOISER_LAYERS, VARIANCE_LAYERS, sanitize
 from admc.model import transforms as tf
@@ -177,9 +178,37 @@ def _level_images(
     return images
 
 
+UNCONVERGED_REL_STD = (0.2, 0.4)
+"""Where a reference's relative standard deviation passes these, its pixels are skewed enough that L1 learns
+their median, not their mean: 16 renders at 256 spp of cbox and interior train frames put a pixel's median at
+0.94-0.99x its mean between 0.15 and 0.3 and at 0.81-0.97x above 0.3 (caustics seen through glass, light
+through a window; docs/results/2026-12-07-val-references.md)."""
+
+
+def converged_share(reference: dict[str, np.ndarray], branch: str) -> np.ndarray:
+    """(H, W, 1) weight of the raw reference in the partner's target: 1 where the reference has converged,
+    falling to 0 (the cleaned target) as its relative standard deviation, over 7x7 pixels (one pixel's
+    variance is too noisy an estimate of its tail), goes from the first UNCONVERGED_REL_STD to the second."""
+    value = uniform_filter(_luminance(reference[branch]), 7)
+    var = uniform_filter(_luminance(reference[f"{branch}_var"]), 7)
+    rel_std = np.sqrt(np.maximum(var, 0.0)) / np.maximum(value, 1e-3)
+    low, high = UNCONVERGED_REL_STD
+    return np.clip((high - rel_std) / (high - low), 0.0, 1.0)[..., None].astype(np.float32)
+
+
+def partner_references(raw: dict[str, np.ndarray], cleaned: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Linear per-branch targets of OIDN's fine-tune on raw references: the raw reference where it has
+    converged (it keeps detail OIDN's cleaning blurs), the cleaned one where its noise is heavy-tailed."""
+    return {
+        branch: (w := converged_share(raw, branch)) * raw[branch] + (1.0 - w) * cleaned[branch]
+        for branch in ("diffuse", "specular")
+        if branch in raw
+    }
+
+
 def _raw_references(albedo: np.ndarray, diffuse: np.ndarray, specular: np.ndarray | None) -> dict[str, np.ndarray]:
-    """The raw reference in the store's transforms, as `_level_images` puts a target: beside a cleaned one.
-    `diffuse` is linear; `specular` already transformed (it does not depend on the level), None without."""
+    """The partner's raw-reference target in the store's transforms, as `_level_images` puts a target: beside a
+    cleaned one. `diffuse` is linear; `specular` already transformed (it does not depend on the level), None without."""
     images = {"raw_ref_diffuse": tf.diffuse_forward(diffuse, albedo)}
     if specular is not None:
         images["raw_ref_specular"] = specular
@@ -227,12 +256,13 @@ def tile_scene(
         score = importance_map(noisy[spp_inputs[0]], reference)
         origins = choose_crops(score, crops_per_scene, patch_size, candidates_per_crop, rng)
     ref_specular = tf.specular_forward(reference["specular"]) if has_specular else None
-    raw_specular = tf.specular_forward(raw_reference["specular"]) if has_specular and clean_targets else None
+    partner = partner_references(raw_reference, reference) if clean_targets else {}
+    raw_specular = tf.specular_forward(partner["specular"]) if has_specular and clean_targets else None
     rows: dict[str, list] = {}
     for key in spp_inputs:
         images = _level_images(noisy[key], reference["diffuse"], ref_specular, refiner_base, noise_maps)
         if clean_targets:  # the raw reference too: OIDN's fine-tune learns from it (training/oidn_partner.py)
-            images |= _raw_references(noisy[key]["albedo"], raw_reference["diffuse"], raw_specular)
+            images |= _raw_references(noisy[key]["albedo"], partner["diffuse"], raw_specular)
         for name, image in images.items():
             rows.setdefault(name, []).append(_crops(image, origins, patch_size))
         rows.setdefault("spp", []).append(np.full(len(origins), int(key[3:]), dtype=np.int32))
