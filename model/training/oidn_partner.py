@@ -48,7 +48,8 @@ PARTNER_SEED_OFFSET = 7919
 CANDIDATES = {"diffuse": (RAW,), "specular": ("", RAW)}
 """What each branch's network learns from where the store keeps raw references beside cleaned targets
 (tile.clean_targets): the diffuse one the raw references, cleaned where they have not converged
-(tile.partner_references; its best val step beat the cleaned targets' on all four domains measured, by 1-9%),
+(tile.partner_references; its best val step beat the cleaned targets' on all four domains measured, by 1-9%,
+against 256-spp val references, which favour darker outputs: docs/results/2026-12-07-val-references.md),
 the specular one both, until the first validation after step 0, then the
 better alone (which one pays flips by domain: docs/results/2026-12-06-fine-tuned-oidn.md)."""
 
