@@ -1,7 +1,11 @@
 """Training data: symmetry augmentation (normals transformed with the image), the seeded resumable
 batch stream, and DataLoader batches from a real patch store with and without workers."""
 
+import signal
+import sys
 import threading
+import time
+from multiprocessing import resource_sharer
 
 import numpy as np
 import pytest
@@ -13,6 +17,7 @@ from admc.model.training.data import (
     BatchStream,
     PatchDataset,
     load_rows,
+    loader_worker_init,
     quiet_closed_pipes,
     spread_rows,
     train_loader,
@@ -191,22 +196,49 @@ def test_spread_rows_are_evenly_spaced_and_never_repeat():
 
 def test_a_loader_worker_does_not_print_a_closed_pipe_but_prints_other_errors(monkeypatch):
     # Ctrl-C during train: the main process stops reading while a worker's resource_sharer thread still
-    # serves a batch's file descriptor; its BrokenPipeError must not print a traceback under the CLI's
-    # one-line message (test_user_errors_cli's Ctrl-C test met it now and then)
+    # serves a batch's file descriptor; that thread hands its BrokenPipeError to sys.excepthook, whose
+    # traceback must not print under the CLI's one-line message (test_user_errors_cli's Ctrl-C test met
+    # it now and then). The real resource_sharer thread, serving a request whose asker hung up.
     printed = []
-    monkeypatch.setattr(threading, "excepthook", lambda args: printed.append(args.exc_type))
-    quiet_closed_pipes(0)
+    monkeypatch.setattr(sys, "excepthook", lambda exc_type, exc, tb: printed.append(exc_type))
+    quiet_closed_pipes()
+    handled = threading.Event()
 
-    def raise_in_thread(error):
-        def run():
-            raise error
+    def serve(error):
+        asked = threading.Event()
 
-        thread = threading.Thread(target=run)
-        thread.start()
-        thread.join()
+        def send(conn, _pid):
+            asked.wait(10)
+            try:
+                if error is BrokenPipeError:
+                    conn.send_bytes(b"x" * (1 << 22))  # the asker closed its end
+                raise error("a worker's own bug")
+            finally:
+                handled.set()
 
-    raise_in_thread(BrokenPipeError(32, "Broken pipe"))
-    raise_in_thread(ConnectionResetError(104, "Connection reset by peer"))
+        handled.clear()
+        conn = resource_sharer._resource_sharer.get_connection(
+            resource_sharer._resource_sharer.register(send, lambda: None)
+        )
+        conn.close()
+        asked.set()
+        assert handled.wait(10)
+        time.sleep(0.2)  # the hook runs after send returns
+
+    serve(BrokenPipeError)
     assert printed == []
-    raise_in_thread(ValueError("a worker's own bug"))
+    serve(ValueError)
     assert printed == [ValueError]
+
+
+def _sigint_handler(_index):
+    return int(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+
+
+def test_loader_workers_leave_ctrl_c_to_the_main_process():
+    before = signal.getsignal(signal.SIGINT)
+    loader = torch.utils.data.DataLoader(
+        [0, 1], batch_size=None, num_workers=1, worker_init_fn=loader_worker_init, collate_fn=_sigint_handler
+    )
+    assert list(loader) == [1, 1]
+    assert signal.getsignal(signal.SIGINT) is before

@@ -8,7 +8,8 @@ batches it had consumed. Augmentation is the 8 symmetries of the square (symmetr
 
 from __future__ import annotations
 
-import threading
+import signal
+import sys
 from collections.abc import Iterator
 
 import numpy as np
@@ -125,25 +126,33 @@ def train_loader(
         persistent_workers=False,
         generator=torch.Generator().manual_seed(seed),
         prefetch_factor=2 if num_workers > 0 else None,
-        worker_init_fn=quiet_closed_pipes,
+        worker_init_fn=loader_worker_init,
     )
 
 
-def quiet_closed_pipes(_worker_id: int) -> None:
-    """In a loader worker: a closed pipe in a background thread is not printed as a traceback.
+def loader_worker_init(_worker_id: int) -> None:
+    """In a loader worker: Ctrl-C is left to the main process, and a closed pipe prints nothing.
 
-    A worker hands each batch's tensors to the main process through file descriptors, served by a
-    thread of multiprocessing's resource_sharer. When the main process stops reading (Ctrl-C, or an
-    error it reports itself), that thread meets a broken pipe; its traceback would bury the one-line
-    message the CLI prints. Any other exception in a worker's thread is printed as before.
+    Ctrl-C reaches every process of the terminal's group. The main process answers it with one line
+    and shuts its loaders down (torch stops their workers); a worker that took it too would only race
+    that shutdown. A worker hands each batch's tensors to the main process through file descriptors,
+    served by multiprocessing's resource_sharer thread; when the main process stops reading mid-batch
+    (Ctrl-C, or an error it reports itself), that thread meets a broken pipe and hands it to
+    sys.excepthook, whose traceback would land under the CLI's message. Any other error prints as before.
     """
-    previous = threading.excepthook
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    quiet_closed_pipes()
 
-    def hook(args: threading.ExceptHookArgs) -> None:
-        if not issubclass(args.exc_type, (BrokenPipeError, ConnectionResetError)):
-            previous(args)
 
-    threading.excepthook = hook
+def quiet_closed_pipes() -> None:
+    """sys.excepthook, as resource_sharer calls it, prints nothing for a broken or reset pipe."""
+    previous = sys.excepthook
+
+    def hook(exc_type, exc, tb) -> None:
+        if not issubclass(exc_type, (BrokenPipeError, ConnectionResetError)):
+            previous(exc_type, exc, tb)
+
+    sys.excepthook = hook
 
 
 def spread_rows(length: int, n: int) -> list[int]:
