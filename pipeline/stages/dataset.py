@@ -85,7 +85,9 @@ def _check_store_matches(store: Path, splits: dict[str, tuple[SceneSpec, str]], 
                     "(with tile.split_exact the corpus's size sets the cuts); tile into a new store: "
                     "--set tile.store=<new name> (the renders are cached)"
                 )
-        strays = sorted(scene_id for scene_id in stored if scene_id not in splits) if split == "val" else []
+        if split != "val":
+            continue
+        strays = sorted(scene_id for scene_id in stored if scene_id not in splits)
         if strays:
             raise StageError(
                 f"{store}: its val split holds {strays[0]} (and {len(strays) - 1} more), which "
