@@ -499,31 +499,38 @@ def test_reference_floor_predicts_the_relmse_between_two_independent_references(
 
 
 def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
-    from admc.common.metrics import reference_floor
+    from admc.common.metrics import reference_floor, ssim_floor
 
     result, out = evaluated
-    floors = {}
+    floors, ssim_floors = {}, {}
     for folder in sorted(renders.iterdir()):
         ref = read_exr(folder / "reference.exr")
-        floors[folder.name] = reference_floor(
-            ref["diffuse_var"] + ref.get("specular_var", 0), ref["diffuse"] + ref.get("specular", 0)
-        )
+        radiance, variance = ref["diffuse"] + ref.get("specular", 0), ref["diffuse_var"] + ref.get("specular_var", 0)
+        floors[folder.name] = reference_floor(variance, radiance)
+        ssim_floors[folder.name] = ssim_floor(variance, radiance)
     assert all(0 < f < 0.1 for f in floors.values())
+    assert all(0 < f < 1 for f in ssim_floors.values())
     for r in result.records + result.path_tracer:
         assert r.reference_floor == pytest.approx(floors[r.scene_id], rel=1e-12)
         assert r.relmse_minus_floor == pytest.approx(r.relmse - floors[r.scene_id], rel=1e-12, abs=1e-15)
+        assert r.ssim_floor == ssim_floors[r.scene_id]  # seeded draws: the same value every time
     rows = _read_table(out / "table1.csv")
     for row in rows:
         assert float(row["reference_floor"]) == pytest.approx(np.mean(list(floors.values())), rel=1e-9)
         assert float(row["relmse_minus_floor_avg"]) == pytest.approx(
             float(row["relmse_avg"]) - float(row["reference_floor"]), rel=1e-9, abs=1e-12
         )
+        assert float(row["ssim_floor"]) == pytest.approx(np.mean(list(ssim_floors.values())), rel=1e-9)
     md = (out / "table1.md").read_text()
     floor_rows = [line for line in md.splitlines() if "| reference floor |" in line]
-    assert len(floor_rows) == 2 and f"| {np.mean(list(floors.values())):.4f} |" in floor_rows[0]
+    assert len(floor_rows) == 2
+    cells = [c.strip() for c in floor_rows[0].split("|")]
+    assert cells[3] == f"{np.mean(list(ssim_floors.values())):.4f}"  # under 1-SSIM Avg.
+    assert cells[7] == f"{np.mean(list(floors.values())):.4f}"  # under relMSE Avg.
     assert "relMSE − floor" in md and "expected relMSE against the converged image" in md
     doc = json.loads((out / "results.json").read_text())
     assert doc["reference_floor"]["per_scene"] == pytest.approx(floors, rel=1e-12)
+    assert doc["ssim_floor"]["per_scene"] == pytest.approx(ssim_floors, rel=1e-12)
 
 
 def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_path):

@@ -201,3 +201,25 @@ def test_reinhard_compresses_highlights_before_the_tone_map():
         round(255 * 0.5 ** (1 / 2.2)),
         round(255 * 0.75 ** (1 / 2.2)),
     ]
+
+
+@pytest.mark.parametrize("sigma", [0.003, 0.007])
+def test_ssim_floor_estimates_the_converged_images_score_against_a_noisy_reference(sigma):
+    """A flat grey truth and a reference of it with Gaussian noise: ssim_floor, from the reference and its
+    variance alone, against 1-SSIM(truth, reference). In 8-bit display units the noise has variance
+    v = (255 / 2.2 * t^(1/2.2 - 1) * sigma)^2 and rounding adds q = 1/12 to each noisy image, so per window
+    the truth's loss is (v + q) / (v + q + C2) and the draw's (v + 2q) / (3v + 2q + C2) (its image carries the
+    reference's noise twice): their ratio, within the spread of the draws (3 %: ~8k windows of 3 channels)."""
+    rng = np.random.default_rng(3)
+    truth = np.full((96, 96, 3), 0.2)
+    reference = truth + sigma * rng.standard_normal(truth.shape)
+    variance = np.full(truth.shape, sigma**2)
+    v, q, c2 = (255 / 2.2 * 0.2 ** (1 / 2.2 - 1) * sigma) ** 2, 1 / 12, (0.03 * 255) ** 2
+    expected = (v + 2 * q) / (3 * v + 2 * q + c2) / ((v + q) / (v + q + c2))
+    ratio = metrics.ssim_floor(variance, reference) / metrics.one_minus_ssim(truth, reference)
+    assert ratio == pytest.approx(expected, abs=0.03), v
+
+
+def test_ssim_floor_of_a_noiseless_reference_is_zero():
+    ref = np.random.default_rng(0).uniform(0, 1, (32, 32, 3))
+    assert metrics.ssim_floor(np.zeros_like(ref), ref) == 0.0

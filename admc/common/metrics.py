@@ -31,6 +31,7 @@ SSIM_SIGMA = 1.5
 SSIM_RADIUS = 5  # 11x11 window: int(3.5 * 1.5 + 0.5), as scikit-image and Wang et al. 2004
 SSIM_K1, SSIM_K2 = 0.01, 0.03
 LDR_RANGE = 255.0  # PSNR and SSIM run on 8-bit values 0..255
+SSIM_FLOOR_DRAWS = 2  # a 256x256 image's SSIM map averages ~200k values: two draws agree to ~1 %
 NONFINITE_RULE = (
     "NaN and +-inf values in an image or its reference are replaced by 0 before every metric "
     "and counted; the count is reported next to the scores."
@@ -144,6 +145,27 @@ def ssim(x: np.ndarray, ref: np.ndarray) -> float:
 def one_minus_ssim(x: np.ndarray, ref: np.ndarray) -> float:
     """1 - ssim(x, ref): the paper's SSIM column, oriented so that lower is better like relMSE."""
     return 1.0 - ssim(x, ref)
+
+
+def ssim_floor(variance: np.ndarray, ref: np.ndarray) -> float:
+    """SSIM floor = 1-SSIM(ref + n, ref), n ~ N(0, variance) per pixel and channel (a fixed seed, the mean of
+    SSIM_FLOOR_DRAWS draws): about the 1-SSIM that the converged image itself would score against this
+    noisy reference, from the renderer's variance of each pixel's mean.
+
+    A denoiser's output is smooth where the reference is still noisy, and SSIM's structure term counts
+    that noise as a flaw of the output: at high spp most of a good denoiser's 1-SSIM can be the
+    reference's. Unlike relMSE, SSIM does not add up, so there is no "1-SSIM - floor". The draw puts a
+    second copy of the noise on the reference: where the noise is strong against SSIM's constant C2 and
+    the local contrast the estimate falls short of the converged image's score (by 10 % at a standard
+    deviation of 2 of the 8-bit levels), and below one level, where 8-bit rounding adds as much, it runs
+    a little over it.
+    """
+    _check_pair(variance, ref)
+    sigma, ref = np.sqrt(np.maximum(finite(variance), 0.0)), finite(ref)
+    rng = np.random.default_rng(0)
+    return float(
+        np.mean([one_minus_ssim(ref + sigma * rng.standard_normal(ref.shape), ref) for _ in range(SSIM_FLOOR_DRAWS)])
+    )
 
 
 def _finite_torch(x: Tensor) -> Tensor:

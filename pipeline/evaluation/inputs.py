@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-import math
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from admc.common.metrics import reference_floor
+from admc.common.metrics import reference_floor, ssim_floor
 from admc.pipeline.evaluation.baselines import noisy_color
-from admc.pipeline.evaluation.records import EvalError, TestImage
+from admc.pipeline.evaluation.records import EvalError, ReferenceFloors, TestImage
 from admc.stores.exr import exr_layers, read_exr
 
 
@@ -71,16 +70,19 @@ def find_test_images(renders_dir: Path, scene_ids: list[str] | None = None) -> l
     return sorted(images, key=lambda t: (t.scene_id, t.spp))
 
 
-def read_reference(path: Path) -> tuple[np.ndarray, float]:
-    """(diffuse + specular, its reference floor) of a reference EXR; the floor is NaN where the file has
-    no variance layers (a reference rendered elsewhere)."""
+def read_reference(path: Path) -> tuple[np.ndarray, ReferenceFloors]:
+    """(diffuse + specular, its floors) of a reference EXR; the floors are NaN where the file has no
+    variance layers (a reference rendered elsewhere)."""
     present = exr_layers(path)
     layers = read_exr(
         path, [name for name in ("diffuse", "specular", "diffuse_var", "specular_var") if name in present]
     )
     radiance = noisy_color(layers)
     variances = [layers[name] for name in ("diffuse_var", "specular_var") if name in layers]
-    return radiance, reference_floor(sum(variances), radiance) if variances else math.nan
+    if not variances:
+        return radiance, ReferenceFloors()
+    variance = sum(variances)
+    return radiance, ReferenceFloors(reference_floor(variance, radiance), ssim_floor(variance, radiance))
 
 
 def by_scene(images: list[TestImage]) -> dict[str, list[TestImage]]:

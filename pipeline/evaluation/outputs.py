@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from admc.common.metrics import METRICS, NONFINITE_RULE, reference_floor
+from admc.common.metrics import METRICS, NONFINITE_RULE, reference_floor, ssim_floor
 from admc.pipeline.evaluation.baselines import cpu_description
 from admc.pipeline.evaluation.plot import plot_error_vs_time
 from admc.pipeline.evaluation.records import (
@@ -70,7 +70,14 @@ def _table_csv(result: EvalResult, out_dir: Path) -> Path:
     fields = ["spp", "denoiser", "device", "n_images"]
     for m in METRICS:
         fields += [f"{m.key}_avg", f"{m.key}_bp"]
-    fields += ["denoise_seconds", "total_seconds", "nonfinite", "reference_floor", "relmse_minus_floor_avg"]
+    fields += [
+        "denoise_seconds",
+        "total_seconds",
+        "nonfinite",
+        "reference_floor",
+        "relmse_minus_floor_avg",
+        "ssim_floor",
+    ]
     with publishing(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(fields)
@@ -86,6 +93,7 @@ def _table_csv(result: EvalResult, out_dir: Path) -> Path:
                     row.nonfinite,
                     repr(row.reference_floor),
                     repr(row.relmse_minus_floor),
+                    repr(row.ssim_floor),
                 ]
             )
     return path
@@ -236,6 +244,12 @@ def write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int) 
                 "per_scene": {
                     r.scene_id: _floor_known({"reference_floor": r.reference_floor})["reference_floor"]
                     for r in result.path_tracer
+                },
+            },
+            "ssim_floor": {
+                "definition": inspect.getdoc(ssim_floor),
+                "per_scene": {
+                    r.scene_id: _floor_known({"ssim_floor": r.ssim_floor})["ssim_floor"] for r in result.path_tracer
                 },
             },
             "best_percent_rule": BEST_PERCENT_RULE,

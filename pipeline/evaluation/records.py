@@ -26,15 +26,25 @@ BEST_PERCENT_RULE = (
     f"methods gets 1/k of that image's credit, so every spp/metric column sums to 100 %."
 )
 FLOOR_ROW = "reference floor"
-FLOOR_KEYS = frozenset({"reference_floor", "relmse_minus_floor"})
+FLOOR_KEYS = frozenset({"reference_floor", "relmse_minus_floor", "ssim_floor"})
 FLOOR_COLUMN = "relMSE − floor"
 FLOOR_RULE = (
-    "The references are renders too: the reference floor row is their own expected relMSE against the "
-    "converged image (metrics.reference_floor, from their variance layers; NaN where a reference has "
-    "none). Every relMSE above is measured against these references and so carries about this much "
-    "of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
-    "error against the converged image (it can fall below 0 by chance)."
+    "The references are renders too: the reference floor row gives their own expected relMSE against the "
+    "converged image (metrics.reference_floor) and, under 1-SSIM, about the 1-SSIM that the converged image "
+    "itself would score against them (metrics.ssim_floor), both from their variance layers (NaN where a "
+    "reference has none). Every relMSE above is measured against these references and so carries about this "
+    "much of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
+    "error against the converged image (it can fall below 0 by chance). No method's 1-SSIM goes far below "
+    "its floor: where the floor is most of OIDN's 1-SSIM, so is the reference's noise."
 )
+
+
+@dataclass(frozen=True)
+class ReferenceFloors:
+    """What a reference's own noise costs every method scored against it (NaN: no variance layers)."""
+
+    relmse: float = math.nan  # metrics.reference_floor
+    one_minus_ssim: float = math.nan  # metrics.ssim_floor
 
 
 class EvalError(AdmcError, ValueError):
@@ -73,6 +83,7 @@ class ImageRecord:
     denoise_seconds: float
     image: Path  # the scored image as a float32 EXR (plain R, G, B), under out_dir/images/
     reference_floor: float = math.nan  # the reference's own expected relMSE (metrics.reference_floor)
+    ssim_floor: float = math.nan  # the converged image's 1-SSIM against the reference (metrics.ssim_floor)
 
     @property
     def total_seconds(self) -> float:
@@ -99,6 +110,7 @@ class TableRow:
     nonfinite: int  # summed over images
     reference_floor: float = math.nan  # mean over images of the references' own expected relMSE
     relmse_minus_floor: float = math.nan  # mean over images of relMSE - reference floor
+    ssim_floor: float = math.nan  # mean over images of the references' metrics.ssim_floor
 
 
 @dataclass(frozen=True)
@@ -179,6 +191,7 @@ def aggregate(records: list[ImageRecord], devices: dict[str, str]) -> list[Table
                     sum(r.nonfinite for r in cell),
                     float(np.mean([r.reference_floor for r in cell])),
                     float(np.mean([r.relmse_minus_floor for r in cell])),
+                    float(np.mean([r.ssim_floor for r in cell])),
                 )
             )
     return rows

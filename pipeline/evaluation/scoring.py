@@ -34,6 +34,7 @@ from admc.pipeline.evaluation.records import (
     EvalError,
     EvalResult,
     ImageRecord,
+    ReferenceFloors,
     SceneImages,
     ScoredImage,
     TestImage,
@@ -129,10 +130,10 @@ def _scene(
 ) -> Iterator[ScoredImage]:
     """One scene's test images by spp, each scored and written; the scene's paths go into `scene`. A
     generator, so only this scene's images are alive, one test image (and the reference) at a time."""
-    reference, floor = read_reference(group[0].reference_path)
+    reference, floors = read_reference(group[0].reference_path)
     _write(scene.reference, reference)
     for test in sorted(group, key=lambda t: t.spp):
-        scored = _score(test, reference, floor, denoisers, scene.reference.parent, bar, timing)
+        scored = _score(test, reference, floors, denoisers, scene.reference.parent, bar, timing)
         scene.inputs[test.spp] = scored.records[PATH_TRACER].image
         scene.outputs[test.spp] = {d.name: scored.records[d.name].image for d in denoisers}
         yield scored
@@ -141,7 +142,7 @@ def _scene(
 def _score(
     test: TestImage,
     reference: np.ndarray,
-    floor: float,
+    floors: ReferenceFloors,
     denoisers: list[Denoiser],
     folder: Path,
     bar: tuple[Progress, TaskID],
@@ -165,7 +166,7 @@ def _score(
             reference,
             0.0,
             _write(folder / f"{stem}_input.exr", noisy),
-            floor,
+            floors,
         )
     }
     outputs = {}
@@ -189,7 +190,7 @@ def _score(
             reference,
             seconds,
             _write(folder / f"{stem}_{denoiser.name}.exr", image),
-            floor,
+            floors,
         )
         progress.advance(task)
     return ScoredImage(test.scene_id, test.spp, reference, noisy, outputs, records)
@@ -214,7 +215,7 @@ def _record(
     reference: np.ndarray,
     seconds: float,
     saved: Path,
-    floor: float,
+    floors: ReferenceFloors,
 ) -> ImageRecord:
     return ImageRecord(
         test.scene_id,
@@ -226,7 +227,8 @@ def _record(
         render_seconds=test.render_seconds,
         denoise_seconds=seconds,
         image=saved,
-        reference_floor=floor,
+        reference_floor=floors.relmse,
+        ssim_floor=floors.one_minus_ssim,
     )
 
 

@@ -78,9 +78,12 @@ def _spp_rows(spp: int, rows: list[TableRow]) -> list[list[Cell]]:
             cells.append(Cell(f"{row.best_percent[m.key]:.2f}%", row.best_percent[m.key] == top[m.key]))
         cells.append(Cell(f"{row.relmse_minus_floor:.4f}", row.relmse_minus_floor == unbiased))
         lines.append(cells)
-    floor = f"{rows[0].reference_floor:.4f}"  # every method at one spp is scored against the same references
+    # every method at one spp is scored against the same references
+    floors = {"relmse": rows[0].reference_floor, "one_minus_ssim": rows[0].ssim_floor}
     texts = ["", FLOOR_ROW] + [
-        t for m in METRICS for t in ((floor, NOT_APPLICABLE) if m.key == "relmse" else (NOT_APPLICABLE,) * 2)
+        t
+        for m in METRICS
+        for t in ((f"{floors[m.key]:.4f}", NOT_APPLICABLE) if m.key in floors else (NOT_APPLICABLE,) * 2)
     ]
     lines.append([Cell(t) for t in texts + [NOT_APPLICABLE]])
     return lines
