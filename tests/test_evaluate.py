@@ -533,6 +533,30 @@ def test_reference_floor_row_and_the_unbiased_relmse(renders, evaluated):
     assert doc["ssim_floor"]["per_scene"] == pytest.approx(ssim_floors, rel=1e-12)
 
 
+def test_references_without_variance_layers_leave_the_floors_unknown(renders, tmp_path):
+    """A reference rendered elsewhere has no variance layers: both floors are NaN in the records, null in
+    results.json and empty in per_image.csv, and the table still builds."""
+    scene = sorted(renders.iterdir())[0]
+    copy = tmp_path / "renders" / scene.name
+    shutil.copytree(scene, copy)
+    layers = read_exr(copy / "reference.exr")
+    write_exr(copy / "reference.exr", {name: layer for name, layer in layers.items() if not name.endswith("_var")})
+    result = evaluate(
+        find_test_images(tmp_path / "renders"), [NoisyInput()], tmp_path / "out", progress=False, repeats=1, warmup=0
+    )
+    for r in result.records + result.path_tracer:
+        assert math.isnan(r.reference_floor) and math.isnan(r.ssim_floor) and math.isfinite(r.one_minus_ssim)
+    doc = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert doc["reference_floor"]["per_scene"] == {scene.name: None}
+    assert doc["ssim_floor"]["per_scene"] == {scene.name: None}
+    per_image = _read_table(tmp_path / "out" / "per_image.csv")
+    assert {row["ssim_floor"] for row in per_image} == {""} and {row["reference_floor"] for row in per_image} == {""}
+    floor_rows = [
+        line for line in (tmp_path / "out" / "table1.md").read_text().splitlines() if "| reference floor |" in line
+    ]
+    assert len(floor_rows) == 2 and all(line.count("| nan |") == 2 for line in floor_rows)
+
+
 def test_noise_input_weights_name_a_test_render_without_variance(renders, tmp_path):
     """eval hands the renders' variance layers to model.noise_input weights; a test image without them
     is named with the layers it lacks (an EvalError: one line from `admc-pipe eval`, no traceback)."""
