@@ -34,8 +34,9 @@ FLOOR_RULE = (
     "itself would score against them (metrics.ssim_floor), both from their variance layers (NaN where a "
     "reference has none). Every relMSE above is measured against these references and so carries about this "
     "much of their noise; the relMSE − floor column subtracts it per image, an estimate of each method's "
-    "error against the converged image (it can fall below 0 by chance). No method's 1-SSIM goes far below "
-    "its floor: where the floor is most of OIDN's 1-SSIM, so is the reference's noise."
+    "error against the converged image (it can fall below 0 by chance). SSIM does not add up that way, but no "
+    "method's 1-SSIM falls far below its floor: where the floor is most of a method's 1-SSIM, the column "
+    "measures mostly the references' noise."
 )
 
 
