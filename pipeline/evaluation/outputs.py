@@ -41,15 +41,19 @@ def _write_text(path: Path, text: str) -> Path:
     return path
 
 
-def _floor_known(d: dict) -> dict:
+def _known(floor: float) -> float | None:
     """JSON has no NaN: a floor that is unknown (a reference without variance layers) is null."""
-    return {k: None if k in FLOOR_KEYS and math.isnan(v) else v for k, v in d.items()}
+    return None if math.isnan(floor) else floor
+
+
+def _floor_known(d: dict) -> dict:
+    return {k: _known(v) if k in FLOOR_KEYS else v for k, v in d.items()}
 
 
 def _record_dict(r: ImageRecord, out_dir: Path) -> dict:
     d = _floor_known(asdict(r))
     d["total_seconds"] = r.total_seconds
-    d["relmse_minus_floor"] = None if math.isnan(r.relmse_minus_floor) else r.relmse_minus_floor
+    d["relmse_minus_floor"] = _known(r.relmse_minus_floor)
     d["image"] = str(r.image.relative_to(out_dir))
     return d
 
@@ -241,16 +245,11 @@ def write_outputs(result: EvalResult, out_dir: Path, repeats: int, warmup: int) 
             "reference_floor": {
                 "rule": FLOOR_RULE,
                 "definition": inspect.getdoc(reference_floor),
-                "per_scene": {
-                    r.scene_id: _floor_known({"reference_floor": r.reference_floor})["reference_floor"]
-                    for r in result.path_tracer
-                },
+                "per_scene": {r.scene_id: _known(r.reference_floor) for r in result.path_tracer},
             },
             "ssim_floor": {
                 "definition": inspect.getdoc(ssim_floor),
-                "per_scene": {
-                    r.scene_id: _floor_known({"ssim_floor": r.ssim_floor})["ssim_floor"] for r in result.path_tracer
-                },
+                "per_scene": {r.scene_id: _known(r.ssim_floor) for r in result.path_tracer},
             },
             "best_percent_rule": BEST_PERCENT_RULE,
             "timing": {
