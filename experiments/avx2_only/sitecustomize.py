@@ -24,7 +24,6 @@ FEATURES = (
     b"-avx512vbmi2,-avx512bitalg,-avx512vpopcntdq"
 )
 VECTOR_WIDTH = 8  # AVX2's 256-bit registers hold 8 float32 lanes
-PATCHED = ("admc.pipeline.render.variants", "admc.model.precision")
 
 
 def _retarget_llvm() -> None:
@@ -35,11 +34,12 @@ def _retarget_llvm() -> None:
     core._Z19jit_llvm_set_targetPKcS0_j(TARGET_CPU, FEATURES, VECTOR_WIDTH)
 
 
-def _patch(module) -> None:
-    if module.__name__ == "admc.model.precision":
-        module.cpu_has_fast_bf16 = lambda: False
-        return
-    use_variant = module.use_variant
+def _float32_only(precision) -> None:
+    precision.cpu_has_fast_bf16 = lambda: False
+
+
+def _retarget_after_variant(variants) -> None:
+    use_variant = variants.use_variant
 
     def use_variant_avx2(*args, **kwargs):
         name = use_variant(*args, **kwargs)
@@ -47,17 +47,21 @@ def _patch(module) -> None:
             _retarget_llvm()
         return name
 
-    module.use_variant = use_variant_avx2
+    variants.use_variant = use_variant_avx2
+
+
+PATCHES = {"admc.model.precision": _float32_only, "admc.pipeline.render.variants": _retarget_after_variant}
+"""Each module to patch, and its patch."""
 
 
 class _PatchOnImport(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """Loads the PATCHED modules as usual, then patches them before anyone imports names from them."""
+    """Loads the modules of PATCHES as usual, then patches them before anyone imports names from them."""
 
     def __init__(self) -> None:
         self.loaders = {}
 
     def find_spec(self, name, path, target=None):
-        if name not in PATCHED:
+        if name not in PATCHES:
             return None
         sys.meta_path.remove(self)
         try:
@@ -73,7 +77,7 @@ class _PatchOnImport(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def exec_module(self, module):
         self.loaders[module.__name__].exec_module(module)
-        _patch(module)
+        PATCHES[module.__name__](module)
 
 
 sys.meta_path.insert(0, _PatchOnImport())
