@@ -43,9 +43,6 @@ def transform_spec() -> dict:
     }
 
 
-TRANSFORM_PARAMS = transform_spec()
-
-
 def _require_finite(func: str, **arrays: np.ndarray) -> None:
     for name, a in arrays.items():
         bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))

@@ -166,7 +166,6 @@ def test_transform_spec_is_json_and_names_parameters():
     assert json.loads(json.dumps(spec)) == spec
     assert spec["eps"] == T.EPS == 0.00316
     assert spec["feature_channels"] == ["normal.X", "normal.Y", "normal.Z", "depth", "albedo.R", "albedo.G", "albedo.B"]
-    assert T.TRANSFORM_PARAMS == spec
 
 
 def test_feature_layout_slices_name_the_channels_transforms_writes():

@@ -66,7 +66,6 @@ class TrainResult:
     step: int
     branches: list[str]
     skipped_branches: list[str]
-    bad_steps: dict[str, int]
     last_losses: dict[str, dict[str, float]]
     validation: dict[str, dict[str, float]]
     notes: list[str] = field(default_factory=list)  # what the run has to say and has not shown yet
@@ -513,7 +512,6 @@ def _finish(run: _Run, start: int) -> TrainResult:
         step=last_step,
         branches=list(trainers),
         skipped_branches=run.skipped,
-        bad_steps={b: t.bad_total for b, t in trainers.items()},
         last_losses=run.last_losses,
         validation=run.validation,
         notes=run.notes,
