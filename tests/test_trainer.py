@@ -367,6 +367,24 @@ def test_the_oidn_partner_can_rank_its_steps_by_relmse_and_hdr_flip_together(sto
         assert "HDR-FLIP" in note or "no step of its fine-tune" in note
 
 
+def test_the_oidn_partners_hdr_flip_leaves_black_references_to_relmse():
+    """On a black reference HDR-FLIP takes its exposure from the output, so an output of 1e-9 scores near 1: such
+    rows (an interior's specular val rows, 31% of them) would outweigh every lit one in the step ranking."""
+    from admc.common.metrics import hdr_flip
+    from admc.model.training.oidn_partner import _mean_flip
+
+    lit = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0)).double() + 0.1
+    black = torch.zeros(2, 3, 16, 16, dtype=torch.float64)
+    haze = torch.full_like(black, 1e-9)
+    assert hdr_flip(haze[0].numpy().transpose(1, 2, 0), black[0].numpy().transpose(1, 2, 0)) > 0.5
+    reference, output = torch.cat([lit, black]), torch.cat([lit, haze])
+    assert _mean_flip(output, reference) == 0.0  # the lit rows are exact
+    assert _mean_flip(torch.cat([lit * 1.5, haze]), reference) == pytest.approx(
+        np.mean([hdr_flip((1.5 * x).numpy().transpose(1, 2, 0), x.numpy().transpose(1, 2, 0)) for x in lit])
+    )
+    assert _mean_flip(haze, black) == 0.0  # no lit row: the metric is neutral (its ratio to step 0 is 1)
+
+
 def test_the_oidn_partner_trains_in_float32_channels_last_whatever_the_runs_precision(store):
     """OIDN's networks fine-tune and validate in float32 (the OIDN library runs them so; trained in bf16 autocast
     they left 3-5% more HDR-FLIP on a product's test frames: docs/results/2026-12-06-fine-tuned-oidn.md), in
