@@ -39,9 +39,10 @@ CHANNELS = {
 REQUIRED = ("diffuse", "albedo", "normal")
 
 
-def oidn_with_weights(color, albedo, normal, weights: bytes) -> np.ndarray:
+def oidn_with_weights(color, albedo, normal, weights: bytes, clean_aux: bool = False) -> np.ndarray:
     """OIDN (hdr, quality high) running the network weights of a TZA archive: OIDN's C API takes them as the
-    filter's "weights" data, a call pyoidn does not declare, so it is declared here."""
+    filter's "weights" data, a call pyoidn does not declare, so it is declared here. `clean_aux`: the guides
+    were prefiltered (`oidn_prefilter`)."""
     from pyoidn.capi import oidn_Capi, oidn_ffi
     from pyoidn.device import Device
     from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
@@ -59,8 +60,28 @@ def oidn_with_weights(color, albedo, normal, weights: bytes) -> np.ndarray:
             if image is not None:
                 oidn_filter.set_image(name, np.ascontiguousarray(image, np.float32), OIDN_FORMAT_FLOAT3, width, height)
         oidn_filter.set_bool("hdr", True)
+        oidn_filter.set_bool("cleanAux", clean_aux)
         oidn_filter.set_quality(OIDN_QUALITY_HIGH)
         oidn_Capi.oidnSetSharedFilterData(oidn_filter._filter, b"weights", blob, len(weights))
+        oidn_filter.commit()
+        oidn_filter.execute()
+    device.release()
+    return output
+
+
+def oidn_prefilter(name: str, image: np.ndarray) -> np.ndarray:
+    """OIDN's own denoising of an "albedo" or "normal" guide (quality high), for weights that take clean guides."""
+    from pyoidn.device import Device
+    from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
+
+    height, width = image.shape[:2]
+    output = np.zeros((height, width, 3), np.float32)
+    device = Device()
+    device.commit()
+    with Filter(device) as oidn_filter:
+        oidn_filter.set_image(name, np.ascontiguousarray(image, np.float32), OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_image("output", output, OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_quality(OIDN_QUALITY_HIGH)
         oidn_filter.commit()
         oidn_filter.execute()
     device.release()
@@ -110,8 +131,8 @@ class ExportedAdmc:
             raise ValueError(f"{folder}: holds no admc.json (write the folder with `admc-pipe export`)")
         self.folder = Path(folder)
         self.spec = json.loads(manifest.read_text())
-        if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 3:
-            raise ValueError(f"{manifest}: not an admc-onnx export of version 3 (export it again with this admc)")
+        if self.spec.get("format") != "admc-onnx" or self.spec.get("version") != 4:
+            raise ValueError(f"{manifest}: not an admc-onnx export of version 4 (export it again with this admc)")
         self.sessions = {
             branch: onnxruntime.InferenceSession(str(Path(folder) / graph), providers=["CPUExecutionProvider"])
             for branch, graph in self.spec["graphs"].items()
@@ -165,7 +186,8 @@ class ExportedAdmc:
         blend = spec.get("oidn_blend")
         if blend:
             weights = {b: self.folder / name for b, name in blend.get("weights", {}).items()}
-            oidn = self.oidn_bases({b: clean[b] for b in branches}, clean, blend["quality"], weights)
+            prefiltered = blend.get("prefiltered_guides", [])
+            oidn = self.oidn_bases({b: clean[b] for b in branches}, clean, blend["quality"], weights, prefiltered)
             for b, share in blend["shares"].items():
                 if b in branches:
                     out[b] = (np.float32(share) * out[b] + np.float32(1 - share) * oidn[b]).astype(np.float32)
@@ -210,16 +232,20 @@ class ExportedAdmc:
         clean: dict[str, np.ndarray],
         quality: dict[str, str],
         weights: dict[str, Path] | None = None,
+        prefiltered: list[str] = (),
     ) -> dict[str, np.ndarray]:
         """OIDN on each branch (diffuse with albedo and normal, specular alone) at each branch's quality, with
-        the weights file a branch names (a TZA archive: OIDN fine-tuned with the model) instead of its own."""
+        the weights file a branch names (a TZA archive: OIDN fine-tuned with the model) instead of its own, on
+        guides OIDN prefiltered for the branches in `prefiltered`."""
         import pyoidn
 
         guides = {"diffuse": (clean["albedo"], clean["normal"]), "specular": (None, None)}
+        for b in prefiltered:
+            guides[b] = (oidn_prefilter("albedo", guides[b][0]), oidn_prefilter("normal", guides[b][1]))
         weights = weights or {}
         return {
             b: np.nan_to_num(
-                oidn_with_weights(image, *guides[b], weights[b].read_bytes())
+                oidn_with_weights(image, *guides[b], weights[b].read_bytes(), b in prefiltered)
                 if b in weights
                 else pyoidn.denoise(image, *guides[b], hdr=True, quality=quality[b]),
                 nan=0.0,

@@ -22,6 +22,8 @@ SELECT_METRICS = tuple(SELECT_METRIC_LABELS)
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("auto", "float32", "bfloat16")
 OIDN_LOSSES = ("l1", "l1_msssim")
+OIDN_NETWORKS = ("standard", "large")
+"""train.oidn_network: which of OIDN's networks the diffuse branch's partner starts from (nets/oidn_unet.py)."""
 OIDN_SELECTIONS = {"relmse": ("relmse",), "relmse+flip": ("relmse", "hdr_flip")}
 """train.oidn_select -> the val metrics whose ratios to OIDN's own weights rank its fine-tune's steps
 (training/oidn_partner.py: their geometric mean)."""
@@ -73,6 +75,8 @@ class TrainSettings:
     oidn_lr: float = 2e-5  # Adam's rate for that (chosen on the val frames of the domains: docs/results/)
     oidn_loss: str = "l1"  # its loss in OIDN's PU domain: l1 | l1_msssim (OIDN's own training loss; nets/losses.py)
     oidn_select: str = "relmse+flip"  # what ranks its validated steps: relmse+flip | relmse (OIDN_SELECTIONS)
+    oidn_network: str = "standard"  # the diffuse partner's start: standard | large (OIDN's final-frame route:
+    # its large network on guides it prefilters; nets/oidn_unet.py)
     select_z: float = 2.0  # a fine-tuning ships a step only this many standard errors better than
     # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -143,6 +147,11 @@ class TrainSettings:
             self.oidn_select in OIDN_SELECTIONS,
             "oidn_select",
             f"{self.oidn_select!r} is not one of {tuple(OIDN_SELECTIONS)}",
+        )
+        require(
+            self.oidn_network in OIDN_NETWORKS,
+            "oidn_network",
+            f"{self.oidn_network!r} is not one of {OIDN_NETWORKS}",
         )
         require(self.device in DEVICES, "device", f"{self.device!r} is not one of {DEVICES}")
         require(self.precision in PRECISIONS, "precision", f"{self.precision!r} is not one of {PRECISIONS}")

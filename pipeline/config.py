@@ -160,6 +160,7 @@ class EvalConfig:
     split: str
     out_dir: str
     oidn_quality: str
+    oidn_prefiltered: bool
     optix: str
     repeats: int
     warmup: int
@@ -213,6 +214,11 @@ class EvalConfig:
             self.oidn_quality in OIDN_QUALITIES,
             "oidn_quality",
             f"must be one of {', '.join(OIDN_QUALITIES)}, got {self.oidn_quality!r}",
+        )
+        require(
+            isinstance(self.oidn_prefiltered, bool),
+            "oidn_prefiltered",
+            f"must be true or false, got {self.oidn_prefiltered!r}",
         )
         require(self.optix in ("auto", "on", "off"), "optix", f"must be auto, on or off, got {self.optix!r}")
         require(self.repeats >= 1, "repeats", "must be >= 1")

@@ -54,6 +54,22 @@ def test_eval_writes_tables_plot_and_html(tmp_path, variant):
         assert "Not run:" in html and html_escape(why_no_optix) in html
 
 
+def test_oidns_prefiltered_route_is_a_column_of_its_own_where_asked(tmp_path, variant):
+    """eval.oidn_prefiltered: OIDN's final-frame route (guides prefiltered, then cleanAux) beside its default
+    route, scored like it, on the same renders; another image than the default route's."""
+    cfg = load_config(None, [*overrides(tmp_path), "eval.oidn_prefiltered=true"])
+    outcome = run_eval(cfg, progress=False)
+    rows = {(row.method, row.spp): row for row in outcome.result.table}
+    assert {method for method, _ in rows} >= {"noisy", "oidn", "oidn-prefiltered"}
+    for spp in (2, 4):
+        prefiltered, default = rows[("oidn-prefiltered", spp)].average, rows[("oidn", spp)].average
+        assert all(0.0 <= prefiltered[m] < float("inf") for m in ("relmse", "one_minus_ssim", "hdr_flip"))
+        assert prefiltered["relmse"] != default["relmse"]
+        assert prefiltered["relmse"] < rows[("noisy", spp)].average["relmse"]
+    with pytest.raises(ConfigError, match="oidn_prefiltered"):
+        load_config(None, [*overrides(tmp_path), "eval.oidn_prefiltered=3"])
+
+
 def test_eval_scores_against_references_at_eval_reference_spp_and_tiling_keeps_its_own(tmp_path, variant):
     """eval.reference_spp renders the scored scenes' references at that spp (apart from the training
     references of render.reference_spp, which stay cached for tiling); the sidecars and Table 1's reference

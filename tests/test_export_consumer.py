@@ -218,15 +218,18 @@ def test_the_example_blends_with_oidn_as_admc_does(tmp_path, render, exported):
     compare(tmp_path, folder, weights, render)
 
 
-def test_the_example_blends_with_a_fine_tuned_oidn_as_admc_does(tmp_path, render, exported):
+@pytest.mark.parametrize("network", ["standard", "large"])
+def test_the_example_blends_with_a_fine_tuned_oidn_as_admc_does(tmp_path, render, exported, network):
     """Weights that ship OIDN fine-tuned with them (train.oidn_minutes): the export writes its weights as OIDN's
-    own TZA files, admc.json names them, and the example's OIDN runs them as `admc-pipe denoise` does."""
+    own TZA files, admc.json names them, and the example's OIDN runs them as `admc-pipe denoise` does; a large
+    diffuse network (train.oidn_network) on guides OIDN prefilters, as admc.json says."""
     from admc.model.nets.oidn_unet import oidn_unet
     from admc.stores.checkpoints import OIDN_BLEND, export_weights, load_weights, read_oidn_networks
 
     shipped = load_weights(WEIGHTS_DIR / "admc-small-pretrained.pt")
-    partner = {b: oidn_unet(b).state_dict() for b in ("diffuse", "specular")}
-    partner["diffuse"]["dec_conv0.bias"] += 0.05  # not OIDN's own: the files must be what runs
+    partner = {b: oidn_unet(b, network).state_dict() for b in ("diffuse", "specular")}
+    last = "dec_conv1c.bias" if network == "large" else "dec_conv0.bias"
+    partner["diffuse"][last] += 0.05  # not OIDN's own: the files must be what runs
     weights = tmp_path / "partner.pt"
     metadata = {**shipped["metadata"], OIDN_BLEND: {"diffuse": 0.4, "specular": 0.7}}
     export_weights(weights, shipped["branches"], metadata, oidn_networks=partner)
@@ -234,6 +237,7 @@ def test_the_example_blends_with_a_fine_tuned_oidn_as_admc_does(tmp_path, render
     folder = exported(weights)
     blend = json.loads((folder / "admc.json").read_text())["oidn_blend"]
     assert blend["weights"] == {"diffuse": "oidn-diffuse.tza", "specular": "oidn-specular.tza"}
+    assert blend["prefiltered_guides"] == (["diffuse"] if network == "large" else [])
     assert all((folder / name).is_file() for name in blend["weights"].values())
     compare(tmp_path, folder, weights, render)
 

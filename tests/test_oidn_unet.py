@@ -11,7 +11,7 @@ import torch
 
 from admc.common import oidn
 from admc.model.inference.fine_tuned_oidn import partner_archives, partner_bases
-from admc.model.nets.oidn_unet import OidnUNet, autoexposure, batch_exposure, oidn_unet
+from admc.model.nets.oidn_unet import OidnUNet, OidnUNetLarge, autoexposure, batch_exposure, clean_guides, oidn_unet
 from admc.model.inference.oidn_base import oidn_bases
 from admc.stores.oidn_archives import ArchiveError, library_archives, read_archive, write_archive
 
@@ -79,6 +79,30 @@ def test_the_partner_runs_in_oidn_and_from_oidns_weights_gives_oidns_bases(rende
     state["dec_conv0.bias"] = state["dec_conv0.bias"] + 0.05
     other = partner_bases(partner_archives({"diffuse": state}, "test"), render, ("diffuse",))
     assert _relative(other["diffuse"], library["diffuse"]) > 0.01
+
+
+def test_the_large_network_on_prefiltered_guides_is_oidns_final_frame_route(render):
+    """train.oidn_network = "large": OIDN's large clean-guide network in torch, on guides OIDN's own networks
+    prefiltered, is the library's final-frame route (prefilter, then cleanAux); as a partner archive the library
+    runs it with the same prefilter. It is not the standard route's image."""
+    tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None]  # noqa: E731
+    albedo, normal = oidn.prefilter("albedo", render["albedo"]), oidn.prefilter("normal", render["normal"])
+    theirs = oidn.denoise(render["diffuse"], albedo, normal, quality="high", clean_aux=True)
+    guides = clean_guides(tensor(render["albedo"]), tensor(render["normal"]))
+    assert np.array_equal(guides[0][0].numpy().transpose(1, 2, 0), albedo)
+    net = oidn_unet("diffuse", "large")
+    assert isinstance(net, OidnUNetLarge) and sum(p.numel() for p in net.parameters()) == 3_848_387
+    with torch.no_grad():
+        ours = net.denoise(tensor(render["diffuse"]), autoexposure(render["diffuse"]), *guides)
+    assert _relative(ours[0].numpy().transpose(1, 2, 0), theirs) < TOLERANCE
+    archives = partner_archives(
+        {"diffuse": net.state_dict(), "specular": oidn_unet("specular", "large").state_dict()}, "t"
+    )
+    bases = partner_bases(archives, render, ("diffuse", "specular"))
+    assert _relative(bases["diffuse"], theirs) < 1e-6
+    standard = oidn_bases(render, "oidn")
+    assert _relative(bases["diffuse"], standard["diffuse"]) > 0.01  # a different network on other guides
+    assert _relative(bases["specular"], standard["specular"]) < 1e-6  # OIDN has no large colour-only network
 
 
 def test_an_archive_written_reads_back_as_it_was():

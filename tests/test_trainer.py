@@ -295,6 +295,52 @@ def test_a_fine_tuned_oidn_partner_is_trained_first_selected_on_validation_and_s
     assert "OIDN fine-tuned with it" in denoiser.device
 
 
+def test_a_large_oidn_partner_starts_from_oidns_final_frame_route_and_ships_large(store, tmp_path, capsys):
+    """train.oidn_network = "large": the diffuse partner is OIDN's large network on prefiltered guides (its step 0
+    scores the library's final-frame route on the val rows), the specular one stays standard (OIDN has no large
+    colour-only network); the weights ship each at its size and the denoiser runs them."""
+    from admc.model.inference.denoiser import load_denoiser
+    from admc.model.training.oidn_partner import METRIC_LABELS
+    from admc.stores.checkpoints import read_oidn_networks
+    from admc.stores.exr import read_exr
+
+    settings = dataclasses.replace(
+        SETTINGS, steps=1, val_every=1, oidn_blend=True, oidn_minutes=0.02, oidn_network="large", oidn_select="relmse"
+    )
+    result = train(store, tmp_path / "large", settings, TINY, progress=True)
+    assert "OIDN fine-tune step 0 diffuse: val " + METRIC_LABELS["relmse"] in capsys.readouterr().err
+    shipped = read_oidn_networks(result.weights)
+    assert "enc_conv1a.weight" in shipped["diffuse"] and "enc_conv0.weight" in shipped["specular"]
+    denoiser = load_denoiser(result.weights)
+    image = denoiser(read_exr(next(Path(store).parent.glob("renders/*/spp0004.exr"))))
+    assert np.isfinite(image.diffuse).all() and (image.diffuse >= 0).all()
+    with pytest.raises(ValueError, match="^oidn_network: 'huge' is not one of"):
+        TrainSettings(oidn_network="huge").check()
+
+
+def test_a_large_partner_trains_on_rows_whose_guides_oidn_prefiltered_once(store):
+    """PrefilteredGuides: each row's albedo and normal (stored as (n + 1) / 2) are OIDN's prefiltered ones, the
+    rest of the row as stored; a row is prefiltered once."""
+    from admc.common import oidn
+    from admc.common.layout import ALBEDO, NORMAL
+    from admc.model.training.oidn_partner import PrefilteredGuides
+
+    reader = PatchReader(store, "train", branch="diffuse")
+    rows = PrefilteredGuides(reader)
+    stored, item = reader[1], rows[1]
+    albedo = oidn.prefilter("albedo", stored["features"][ALBEDO].transpose(1, 2, 0))
+    normal = oidn.prefilter("normal", stored["features"][NORMAL].transpose(1, 2, 0) * 2 - 1)
+    assert np.array_equal(item["features"][ALBEDO], albedo.transpose(2, 0, 1))
+    assert np.allclose(item["features"][NORMAL], normal.transpose(2, 0, 1) * 0.5 + 0.5, atol=1e-7)
+    assert not np.array_equal(item["features"][ALBEDO], stored["features"][ALBEDO])
+    others = [c for c in range(stored["features"].shape[0]) if c not in range(4, 7) and c not in range(3)]
+    assert np.array_equal(item["features"][others], stored["features"][others])
+    assert np.array_equal(item["noisy"], stored["noisy"]) and len(rows) == len(reader)
+    first = rows.guides[1]
+    rows[1]
+    assert rows.guides[1] is first and list(rows.guides) == [1]
+
+
 def test_a_resumed_run_keeps_its_fine_tuned_oidn_partner(store, tmp_path):
     """The partner's state rides in the checkpoint: a resumed run does not train OIDN again and ships the
     same networks."""

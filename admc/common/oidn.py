@@ -11,16 +11,37 @@ import numpy as np
 QUALITIES = ("high", "balanced", "fast")
 
 
-def denoise(color, albedo=None, normal=None, *, quality: str):
+def denoise(color, albedo=None, normal=None, *, quality: str, clean_aux: bool = False):
     """OIDN's HDR denoising of `color` (H, W, 3), guided by albedo and normal where given.
 
     Inputs are sanitised layers (admc.common.buffers.sanitize): OIDN expects radiance >= 0, albedo
     in [0, 1] and normals in [-1, 1], and a NaN spreads over its whole receptive field. NumPy arrays
-    go to OIDN's CPU device as contiguous float32; CUDA torch tensors run on their GPU.
+    go to OIDN's CPU device as contiguous float32; CUDA torch tensors run on their GPU. `clean_aux`: the
+    guides are noise-free (e.g. `prefilter`ed), which at quality "high" runs OIDN's large network.
     """
     import pyoidn  # here, not at the top: the config reads QUALITIES without loading OIDN's libraries
 
-    return pyoidn.denoise(_host(color), _host(albedo), _host(normal), hdr=True, quality=check_quality(quality))
+    quality = check_quality(quality)
+    return pyoidn.denoise(_host(color), _host(albedo), _host(normal), hdr=True, quality=quality, clean_aux=clean_aux)
+
+
+def prefilter(name: str, image):
+    """OIDN's own denoising of an (H, W, 3) "albedo" or "normal" guide at quality "high" (its large guide
+    networks): the first half of its final-frame route, whose second half is `denoise(..., clean_aux=True)`."""
+    from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
+
+    image = _host(image)
+    height, width = image.shape[:2]
+    output = np.zeros_like(image)
+    device = _device()
+    with Filter(device) as oidn_filter:
+        oidn_filter.set_image(name, image, OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_image("output", output, OIDN_FORMAT_FLOAT3, width, height)
+        oidn_filter.set_quality(OIDN_QUALITY_HIGH)
+        oidn_filter.commit()
+        oidn_filter.execute()
+        _raise_device_error(device)
+    return output
 
 
 def check_quality(quality: str) -> str:
@@ -35,10 +56,11 @@ def _host(image):
     return np.ascontiguousarray(image, dtype=np.float32) if isinstance(image, np.ndarray) else image
 
 
-def denoise_with_weights(color, albedo=None, normal=None, *, weights: bytes):
+def denoise_with_weights(color, albedo=None, normal=None, *, weights: bytes, clean_aux: bool = False):
     """`denoise` at quality "high" with OIDN's network running other weights: `weights` is a TZA archive of
-    its U-Net (stores/oidn_archives.py `write_archive`), e.g. one fine-tuned on a domain. OIDN's C API takes
-    it as the filter's "weights" data; pyoidn does not declare that call, so it is declared here."""
+    its U-Net (stores/oidn_archives.py `write_archive`; OIDN builds the network its tensors name, standard or
+    large), e.g. one fine-tuned on a domain. OIDN's C API takes it as the filter's "weights" data; pyoidn does
+    not declare that call, so it is declared here."""
     from pyoidn.filter import OIDN_FORMAT_FLOAT3, OIDN_QUALITY_HIGH, Filter
 
     color = _host(color)
@@ -51,6 +73,7 @@ def denoise_with_weights(color, albedo=None, normal=None, *, weights: bytes):
             if image is not None:
                 oidn_filter.set_image(name, image, OIDN_FORMAT_FLOAT3, width, height)
         oidn_filter.set_bool("hdr", True)
+        oidn_filter.set_bool("cleanAux", clean_aux)
         oidn_filter.set_quality(OIDN_QUALITY_HIGH)
         _capi().oidnSetSharedFilterData(oidn_filter._filter, b"weights", blob, len(weights))
         oidn_filter.commit()

@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from admc.common import oidn
-from admc.stores.oidn_archives import write_archive
+from admc.stores.oidn_archives import read_archive, write_archive
 
-from ..nets.oidn_unet import INPUT_CHANNELS, OidnUNet
+from ..nets.oidn_unet import INPUT_CHANNELS, network_for, uses_clean_guides
 from ..symmetry import ENSEMBLE_CODES, apply, undo
 
 
@@ -24,7 +24,7 @@ def partner_archives(states: dict[str, dict], where: str) -> dict[str, bytes]:
 
     archives = {}
     for branch, state in states.items():
-        net = OidnUNet(INPUT_CHANNELS[branch])
+        net = network_for(state, INPUT_CHANNELS[branch])
         load_network(net, {k: v.float() for k, v in state.items()}, f"{where}: {branch} OIDN network", "OIDN's U-Net")
         archives[branch] = write_archive({k: v.numpy() for k, v in net.state_dict().items()})
     return archives
@@ -34,16 +34,19 @@ def partner_bases(
     archives: dict[str, bytes], clean: dict[str, np.ndarray], branches: tuple[str, ...], ensemble: int = 1
 ) -> dict[str, np.ndarray]:
     """{branch: (H, W, 3) float32 linear output} for sanitised layers, as oidn_base.oidn_bases gives OIDN's
-    own (negatives and non-finite values set to 0)."""
+    own (negatives and non-finite values set to 0). A large network gets its guides prefiltered by OIDN."""
     out = {}
     for branch in branches:
         guides = branch == "diffuse"
+        prefiltered = guides and uses_clean_guides(read_archive(archives[branch]))
         total = np.zeros_like(clean[branch], dtype=np.float32)
         for code in ENSEMBLE_CODES[ensemble]:
             color = _image(apply(_tensor(clean[branch]), code))
             albedo = _image(apply(_tensor(clean["albedo"]), code)) if guides else None
             normal = _image(apply((_tensor(clean["normal"]) + 1) * 0.5, code, normals=True) * 2 - 1) if guides else None
-            denoised = oidn.denoise_with_weights(color, albedo, normal, weights=archives[branch])
+            if prefiltered:
+                albedo, normal = oidn.prefilter("albedo", albedo), oidn.prefilter("normal", normal)
+            denoised = oidn.denoise_with_weights(color, albedo, normal, weights=archives[branch], clean_aux=prefiltered)
             total += _image(undo(_tensor(denoised), code))
         total /= len(ENSEMBLE_CODES[ensemble])
         out[branch] = np.clip(np.nan_to_num(total, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)

@@ -31,10 +31,11 @@ OPSET = 17
 """ONNX opset of the graphs: ONNX Runtime and OpenVINO of 2026 both run it (STACK_NOTES.md)."""
 MANIFEST_NAME = "admc.json"
 FORMAT = "admc-onnx"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """2 added `missing`, `variance`, `exposure` and `keep_resolved`: what `admc-pipe denoise` does around the graphs;
 3 added `oidn_blend` (present where the weights ship one: train.oidn_blend), with `weights` where the blend's OIDN
-runs weights fine-tuned with the model (train.oidn_minutes)."""
+runs weights fine-tuned with the model (train.oidn_minutes); 4 added its `prefiltered_guides` (the branches whose
+fine-tuned OIDN is its large network on prefiltered guides: train.oidn_network = "large")."""
 
 
 INPUT_CHANNELS = {"noisy": 3, "features": len(FEATURE_CHANNELS), "noise": 1, "base": 3}
@@ -103,6 +104,7 @@ def export_manifest(
     missing: dict[str, float],
     oidn_blend: dict[str, float] | None = None,
     oidn_weights: dict[str, str] | None = None,
+    prefiltered_guides: tuple[str, ...] = (),
 ) -> dict:
     """What a renderer must run around the graphs, JSON-ready (see docs/engines.md); `missing` is the constant
     a layer the input lacks is filled with (depth, coverage). examples/onnx_denoise.py follows it and
@@ -179,6 +181,10 @@ def export_manifest(
                             "weights": dict(oidn_weights),
                             "weights_rule": "OIDN runs each branch with the weights in that file (TZA, its own "
                             "format: the filter's 'weights' data) at quality high, instead of its built-in ones",
+                            "prefiltered_guides": list(prefiltered_guides),
+                            "prefiltered_guides_rule": "for these branches OIDN first denoises the albedo and the "
+                            "normal guide on their own (a filter with only that image as input and output, quality "
+                            "high), then runs the branch's weights on those guides with cleanAux = true",
                         }
                         if oidn_weights
                         else {}

@@ -6,6 +6,11 @@ pooling, nearest upsampling, skips by concatenation. Its input is OIDN's HDR pat
 autoexposure, through the PU transfer function normalised at 65504; albedo in [0, 1]; the normal mapped from
 [-1, 1] to [0, 1]. Two of OIDN's networks are used, as admc runs OIDN per branch (model/inference/oidn_base.py):
 "diffuse" (colour, albedo, normal: `rt_hdr_alb_nrm`) and "specular" (colour alone: `rt_hdr`).
+
+The diffuse branch can instead start from OIDN's final-frame route (train.oidn_network = "large"): its `large`
+U-Net for clean guides (`rt_hdr_calb_cnrm_large`, 4.2x the parameters, 2.5x the arithmetic a pixel) on albedo
+and normal that OIDN's own large networks have denoised first (`clean_guides`): what OIDN documents for final
+frames and Blender runs by default (prefilter "Accurate"). OIDN has no large colour-only network.
 """
 
 from __future__ import annotations
@@ -135,6 +140,10 @@ class OidnUNet(nn.Module):
         self.dec_conv1a, self.dec_conv1b = _conv(d2b + in_channels, d1a), _conv(d1a, d1b)
         self.dec_conv0 = _conv(d1b, 3)
 
+    @property
+    def in_channels(self) -> int:
+        return self.enc_conv0.in_channels
+
     def forward(self, x: Tensor) -> Tensor:
         """Network-domain input (sides multiples of ALIGNMENT) to network-domain output."""
         relu, pool = F.relu, lambda t: F.max_pool2d(t, 2, 2)
@@ -166,12 +175,83 @@ class OidnUNet(nn.Module):
         return transfer_inverse(self(x)[..., :h, :w]) / exposure
 
 
-def oidn_unet(branch: str) -> OidnUNet:
+class OidnUNetLarge(OidnUNet):
+    """OIDN's `large` U-Net (RenderKit/oidn `training/model.py`, UNetLarge): two convs a level, wider, and a third
+    full-resolution decoder conv. Parameter names are OIDN's."""
+
+    def __init__(self, in_channels: int) -> None:
+        nn.Module.__init__(self)
+        e1, e2, e3, e4, e5 = 64, 96, 128, 192, 256
+        self.enc_conv1a, self.enc_conv1b = _conv(in_channels, e1), _conv(e1, e1)
+        self.enc_conv2a, self.enc_conv2b = _conv(e1, e2), _conv(e2, e2)
+        self.enc_conv3a, self.enc_conv3b = _conv(e2, e3), _conv(e3, e3)
+        self.enc_conv4a, self.enc_conv4b = _conv(e3, e4), _conv(e4, e4)
+        self.enc_conv5a, self.enc_conv5b = _conv(e4, e5), _conv(e5, e5)
+        self.dec_conv4a, self.dec_conv4b = _conv(e5 + e3, e4), _conv(e4, e4)
+        self.dec_conv3a, self.dec_conv3b = _conv(e4 + e2, e3), _conv(e3, e3)
+        self.dec_conv2a, self.dec_conv2b = _conv(e3 + e1, e2), _conv(e2, e2)
+        self.dec_conv1a, self.dec_conv1b = _conv(e2 + in_channels, e1), _conv(e1, e1)
+        self.dec_conv1c = _conv(e1, 3)
+
+    @property
+    def in_channels(self) -> int:
+        return self.enc_conv1a.in_channels
+
+    def forward(self, x: Tensor) -> Tensor:
+        relu, pool = F.relu, lambda t: F.max_pool2d(t, 2, 2)
+        up = lambda t: F.interpolate(t, scale_factor=2, mode="nearest")  # noqa: E731
+        skips = [x]
+        for a, b in (
+            (self.enc_conv1a, self.enc_conv1b),
+            (self.enc_conv2a, self.enc_conv2b),
+            (self.enc_conv3a, self.enc_conv3b),
+            (self.enc_conv4a, self.enc_conv4b),
+        ):
+            x = pool(relu(b(relu(a(x)))))
+            skips.append(x)
+        x = relu(self.enc_conv5b(relu(self.enc_conv5a(x))))
+        for skip, a, b in (
+            (skips[3], self.dec_conv4a, self.dec_conv4b),
+            (skips[2], self.dec_conv3a, self.dec_conv3b),
+            (skips[1], self.dec_conv2a, self.dec_conv2b),
+            (skips[0], self.dec_conv1a, self.dec_conv1b),
+        ):
+            x = relu(b(relu(a(torch.cat((up(x), skip), 1)))))
+        return self.dec_conv1c(x)
+
+
+def network_for(state: dict, in_channels: int) -> OidnUNet:
+    """An untrained network of the architecture whose parameters `state` (a state dict or archive) holds."""
+    return (OidnUNetLarge if "enc_conv1a.weight" in state else OidnUNet)(in_channels)
+
+
+def uses_clean_guides(net_or_state) -> bool:
+    """Whether the network is the large one, trained on prefiltered guides (clean_guides)."""
+    keys = net_or_state.state_dict() if isinstance(net_or_state, nn.Module) else net_or_state
+    return "enc_conv1a.weight" in keys
+
+
+def oidn_unet(branch: str, network: str = "standard") -> OidnUNet:
     """A fresh copy of the branch's network with the weights the installed OIDN runs at quality "high" (see
-    module doc)."""
-    net = OidnUNet(INPUT_CHANNELS[branch])
-    net.load_state_dict({name: torch.from_numpy(value) for name, value in _library_weights(branch).items()})
+    module doc): "large" is the diffuse branch's final-frame network (the specular branch has none)."""
+    large = network == "large" and branch == "diffuse"
+    weights = _large_library_weights() if large else _library_weights(branch)
+    net = (OidnUNetLarge if large else OidnUNet)(INPUT_CHANNELS[branch])
+    net.load_state_dict({name: torch.from_numpy(value) for name, value in weights.items()})
     return net
+
+
+def clean_guides(albedo: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+    """(N, 3, H, W) albedo and normal (in [-1, 1]) denoised by OIDN's own guide networks, in its library: what
+    the large network was trained on. No gradient flows through them (they are inputs)."""
+    from admc.common import oidn
+
+    def each(name: str, batch: Tensor) -> Tensor:
+        images = batch.detach().float().cpu().permute(0, 2, 3, 1).numpy()
+        out = np.stack([oidn.prefilter(name, image) for image in images])
+        return torch.from_numpy(out).permute(0, 3, 1, 2).to(batch.device, batch.dtype)
+
+    return each("albedo", albedo), each("normal", normal)
 
 
 @functools.cache
@@ -214,6 +294,34 @@ def _library_weights(branch: str) -> dict[str, np.ndarray]:
             f"(closest {best_error:.1%} apart): an OIDN version admc does not know"
         )
     return best
+
+
+@functools.cache
+def _large_library_weights() -> dict[str, np.ndarray]:
+    """The library's large clean-guide archive (`rt_hdr_calb_cnrm_large`), checked as `_library_weights` checks
+    the others: on the probe with guides it has prefiltered, run with cleanAux."""
+    from admc.common import oidn
+
+    probe = _probe_image(INPUT_CHANNELS["diffuse"])
+    albedo, normal = oidn.prefilter("albedo", probe[1]), oidn.prefilter("normal", probe[2])
+    expected = oidn.denoise(probe[0], albedo, normal, quality="high", clean_aux=True)
+    tensors = [torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None] for a in (probe[0], albedo, normal)]
+    scale = float(np.abs(expected).mean())
+    for archive in library_archives():
+        if archive.get("enc_conv1a.weight", np.empty((0, 0))).shape[1] != INPUT_CHANNELS["diffuse"]:
+            continue
+        net = OidnUNetLarge(INPUT_CHANNELS["diffuse"])
+        net.load_state_dict({name: torch.from_numpy(value) for name, value in archive.items()})
+        with torch.no_grad():
+            out = net.eval().denoise(tensors[0], autoexposure(probe[0]), *tensors[1:])[0].numpy().transpose(1, 2, 0)
+        error = float(np.abs(out - expected).mean()) / scale
+        if error <= MATCH_TOLERANCE:
+            return archive
+        raise ArchiveError(
+            f"the large weight archive in OIDN's library does not reproduce its final-frame filter ({error:.1%} "
+            "apart): an OIDN version admc does not know"
+        )
+    raise ArchiveError("OIDN's library carries no large network for albedo and normal guides (OIDN 2.2 or later does)")
 
 
 def _probe_image(channels: int, size: int = 32) -> tuple:

@@ -28,13 +28,24 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from admc.common import oidn
 from admc.common.layout import ALBEDO, NORMAL, RAW, branch_of
 from admc.common.metrics import hdr_flip, relmse_torch
 from admc.errors import TrainingError
 from admc.stores.patches import PatchReader
 
 from ..nets.losses import oidn_loss
-from ..nets.oidn_unet import OidnUNet, batch_exposure, network_input, oidn_unet, transfer
+from ..nets.oidn_unet import (
+    INPUT_CHANNELS,
+    OidnUNet,
+    batch_exposure,
+    clean_guides,
+    network_for,
+    network_input,
+    oidn_unet,
+    transfer,
+    uses_clean_guides,
+)
 from ..precision import MEMORY_FORMAT
 from ..train_settings import OIDN_SELECTIONS, TrainSettings
 from .clock import Clock
@@ -155,14 +166,17 @@ def start_partner(
     device: torch.device,
     raw_references: list[str] = (),
 ) -> Partner:
-    """The branches' OIDN networks from `init` (a fine-tuned partner a weights file ships) or the library's;
-    the branches in `raw_references` (their store keeps them beside cleaned targets) get their CANDIDATES."""
+    """The branches' OIDN networks from `init` (a fine-tuned partner a weights file ships, of its own size) or
+    the library's (train.oidn_network); the branches in `raw_references` (their store keeps them beside cleaned
+    targets) get their CANDIDATES."""
     nets = {}
     for name in [b + suffix for b in branches for suffix in (CANDIDATES[b] if b in raw_references else ("",))]:
         b = branch_of(name)
-        net = oidn_unet(b)
         if init and b in init:
+            net = network_for(init[b], INPUT_CHANNELS[b])
             net.load_state_dict({k: v.float() for k, v in init[b].items()})
+        else:
+            net = oidn_unet(b, settings.oidn_network)
         nets[name] = net.to(device, memory_format=MEMORY_FORMAT).train()
     optimizers = {name: torch.optim.Adam(net.parameters(), lr=settings.oidn_lr) for name, net in nets.items()}
     return Partner(nets, optimizers, settings.oidn_select)
@@ -186,7 +200,7 @@ def finetune_partner(
         streams = {
             b: iter(
                 train_loader(
-                    r.with_raw_references() if any(name.endswith(RAW) for name in partner.candidates(b)) else r,
+                    _rows_for(partner, b, r),
                     settings.batch_size,
                     branch_seed(settings.seed, b) + PARTNER_SEED_OFFSET,
                     partner.step,
@@ -208,8 +222,10 @@ def finetune_partner(
             for b in readers:
                 batch = next(streams[b])  # one batch for both of a branch's candidates: a fair trial
                 for name in partner.candidates(b):
-                    x, target = _pairs(batch, b, "raw_reference" if name.endswith(RAW) else "reference", device)
-                    loss = oidn_loss(partner.nets[name](x), target, settings.oidn_loss)
+                    net = partner.nets[name]
+                    target = "raw_reference" if name.endswith(RAW) else "reference"
+                    x, target = _pairs(batch, b, target, device)
+                    loss = oidn_loss(net(x), target, settings.oidn_loss)
                     partner.optimizers[name].zero_grad(set_to_none=True)
                     loss.backward()
                     partner.optimizers[name].step()
@@ -229,8 +245,7 @@ def finetune_partner(
         del streams
     for b, state in partner.shipped().items():
         if b in val:
-            shipped = OidnUNet(partner.nets[partner.candidates(b)[0]].enc_conv0.in_channels)
-            shipped = shipped.to(device, memory_format=MEMORY_FORMAT)
+            shipped = network_for(state, INPUT_CHANNELS[b]).to(device, memory_format=MEMORY_FORMAT)
             shipped.load_state_dict(state)
             partner.val_outputs[b] = _run(shipped, val[b], b, settings.batch_size, device)
 
@@ -253,9 +268,44 @@ def _choose_targets(partner: Partner, show: Callable[[str], None]) -> None:
             )
 
 
+def _rows_for(partner: Partner, branch: str, reader: PatchReader):
+    """What the branch's networks train on: the reader's rows, with their raw references where a candidate
+    learns them, and with prefiltered guides for a large network."""
+    if any(name.endswith(RAW) for name in partner.candidates(branch)):
+        reader = reader.with_raw_references()
+    if any(uses_clean_guides(partner.nets[name]) for name in partner.candidates(branch)):
+        return PrefilteredGuides(reader)
+    return reader
+
+
+class PrefilteredGuides:
+    """A reader's rows with the albedo and normal in their features denoised by OIDN's own guide networks (the
+    large network's input: nets/oidn_unet.py), each row once (0.1-0.2 s a patch on 2 cores, cached: a float32
+    copy of the two guides, 0.4 MB a 128x128 row). The batch's symmetry then applies to the prefiltered guides,
+    where inference prefilters the image it sees; OIDN's networks are trained for every orientation."""
+
+    def __init__(self, reader: PatchReader) -> None:
+        self.reader = reader
+        self.guides: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, i: int) -> dict:
+        item = self.reader[i]
+        features = item["features"].copy()
+        if i not in self.guides:
+            albedo, normal = features[ALBEDO].transpose(1, 2, 0), features[NORMAL].transpose(1, 2, 0) * 2 - 1
+            albedo, normal = oidn.prefilter("albedo", albedo), oidn.prefilter("normal", normal)
+            self.guides[i] = albedo.transpose(2, 0, 1), normal.transpose(2, 0, 1) * 0.5 + 0.5
+        features[ALBEDO], features[NORMAL] = self.guides[i]
+        return {**item, "features": features}
+
+
 def _pairs(batch: dict[str, Tensor], branch: str, target: str, device: torch.device) -> tuple[Tensor, Tensor]:
-    """(network input, target in the network's domain) of a store batch of one branch; `target`: the batch's
-    entry to learn ("reference", or "raw_reference" for a candidate on the raw references)."""
+    """(network input, target in the network's domain) of a store batch of one branch (its guides prefiltered
+    already where the network takes them so: PrefilteredGuides); `target`: the batch's entry to learn
+    ("reference", or "raw_reference" for a candidate on the raw references)."""
     features = batch["features"].to(device)
     noisy = to_linear(batch["noisy"].to(device), features, branch).float()
     reference = to_linear(batch[target].to(device), features, branch).float()
@@ -275,12 +325,22 @@ def _run(net: OidnUNet, rows: dict[str, Tensor], branch: str, batch_size: int, d
     was_training = net.training
     net.eval()
     outputs = []
+    clean = uses_clean_guides(net)
     for i in range(0, len(rows["noisy"]), batch_size):
         features = rows["features"][i : i + batch_size].to(device)
         noisy = to_linear(rows["noisy"][i : i + batch_size].to(device), features, branch).float()
-        outputs.append(net.denoise(noisy, batch_exposure(noisy), *_guides(features, branch)).double().cpu())
+        guides = _val_guides(rows, branch, i, batch_size, device) if clean else _guides(features, branch)
+        outputs.append(net.denoise(noisy, batch_exposure(noisy), *guides).double().cpu())
     net.train(was_training)
     return torch.cat(outputs)
+
+
+def _val_guides(rows: dict[str, Tensor], branch: str, start: int, count: int, device) -> tuple[Tensor, ...]:
+    """Prefiltered guides of val rows start..start+count, prefiltered once (OIDN's guide networks take about a
+    tenth of a second a patch) and kept with the rows."""
+    if "clean_guides" not in rows:
+        rows["clean_guides"] = clean_guides(*_guides(rows["features"].float(), branch))
+    return tuple(g[start : start + count].to(device) for g in rows["clean_guides"])
 
 
 def _validate(partner: Partner, val: dict, batch_size: int, device: torch.device, show: Callable[[str], None]) -> None:

@@ -88,7 +88,9 @@ def _guided_inputs(layers: dict[str, np.ndarray], who: str) -> tuple[list[np.nda
 
 
 class OidnDenoiser:
-    """Intel Open Image Denoise (pyoidn), HDR mode, with albedo and normal as auxiliary inputs.
+    """Intel Open Image Denoise (pyoidn), HDR mode, with albedo and normal as auxiliary inputs; `prefiltered`:
+    OIDN's final-frame route, the guides denoised by OIDN itself first and the colour then with cleanAux (its
+    large network at quality high).
 
     Inputs are sanitised first (`_guided_inputs`); `last_sanitized` counts the colour values replaced
     in the latest call.
@@ -97,11 +99,17 @@ class OidnDenoiser:
     pyoidn keeps one device and filter per process and reuses them across images.
     """
 
-    def __init__(self, quality: str = "high", device: str = "cpu", name: str | None = None) -> None:
+    def __init__(
+        self, quality: str = "high", device: str = "cpu", name: str | None = None, prefiltered: bool = False
+    ) -> None:
         import pyoidn
 
         self.quality = oidn.check_quality(quality)
-        self.name = name or ("oidn" if quality == "high" else f"oidn-{quality}")
+        self.prefiltered = prefiltered
+        route = "-prefiltered" if prefiltered else ""
+        self.name = name or ("oidn" if quality == "high" else f"oidn-{quality}") + route
+        if prefiltered and device != "cpu":
+            raise ValueError("OIDN's prefiltered route runs on the CPU device here")
         self.last_sanitized = 0
         self._torch_device = None
         if device == "cpu":
@@ -123,6 +131,10 @@ class OidnDenoiser:
 
     def denoise(self, layers: dict[str, np.ndarray]) -> np.ndarray:
         inputs, self.last_sanitized = _guided_inputs(layers, "OIDN")
+        if self.prefiltered:
+            colour, albedo, normal = inputs
+            albedo, normal = oidn.prefilter("albedo", albedo), oidn.prefilter("normal", normal)
+            return oidn.denoise(colour, albedo, normal, quality=self.quality, clean_aux=True)
         if self._torch_device is None:
             return oidn.denoise(*inputs, quality=self.quality)
         import torch

@@ -191,7 +191,10 @@ def run_eval(cfg: Config, extra: list[Denoiser] = (), progress: bool = True) -> 
     scene_ids = [s.scene_id for s in specs]
     renders_dir = render_corpus(scoring_config(cfg), progress, specs).renders_dir
     images = find_test_images(renders_dir, scene_ids)
-    denoisers = [NoisyInput(), OidnDenoiser(quality=cfg.eval.oidn_quality), *optix, *extra]
+    oidn_routes = [OidnDenoiser(quality=cfg.eval.oidn_quality)]
+    if cfg.eval.oidn_prefiltered:
+        oidn_routes.append(OidnDenoiser(quality=cfg.eval.oidn_quality, prefiltered=True))
+    denoisers = [NoisyInput(), *oidn_routes, *optix, *extra]
     out_dir = cfg.workdir_path(cfg.eval.out_dir)
     figures = ReportFigures()
     result = scoring.evaluate(
