@@ -77,6 +77,7 @@ class TrainSettings:
     oidn_select: str = "relmse+flip"  # what ranks its validated steps: relmse+flip | relmse (OIDN_SELECTIONS)
     oidn_network: str = "standard"  # the diffuse partner's start: standard | large (OIDN's final-frame route:
     # its large network on guides it prefilters; nets/oidn_unet.py)
+    oidn_lr_large: float = 5e-6  # Adam's rate for the large one (at oidn_lr it lost HDR-FLIP from step 100)
     select_z: float = 2.0  # a fine-tuning ships a step only this many standard errors better than
     # its starting weights on the val patches (selection.py); 0: any better
     checkpoint_every: int = 5_000
@@ -110,7 +111,16 @@ class TrainSettings:
             "val_patches",
             f"must be >= 1 when val_every > 0, got {self.val_patches!r}",
         )
-        for name in ("lr_g_diffuse", "lr_g_specular", "lr_d", "oidn_lr", "body_lr_factor", "lr_gamma", "l1_floor"):
+        for name in (
+            "lr_g_diffuse",
+            "lr_g_specular",
+            "lr_d",
+            "oidn_lr",
+            "oidn_lr_large",
+            "body_lr_factor",
+            "lr_gamma",
+            "l1_floor",
+        ):
             value = getattr(self, name)
             require(isinstance(value, (int, float)) and value > 0, name, f"must be > 0, got {value!r}")
         require(isinstance(self.distill_from, str), "distill_from", f'must be a path or "", got {self.distill_from!r}')

@@ -300,7 +300,7 @@ def test_a_large_oidn_partner_starts_from_oidns_final_frame_route_and_ships_larg
     scores the library's final-frame route on the val rows), the specular one stays standard (OIDN has no large
     colour-only network); the weights ship each at its size and the denoiser runs them."""
     from admc.model.inference.denoiser import load_denoiser
-    from admc.model.training.oidn_partner import METRIC_LABELS
+    from admc.model.training.oidn_partner import METRIC_LABELS, start_partner
     from admc.stores.checkpoints import read_oidn_networks
     from admc.stores.exr import read_exr
 
@@ -314,6 +314,12 @@ def test_a_large_oidn_partner_starts_from_oidns_final_frame_route_and_ships_larg
     denoiser = load_denoiser(result.weights)
     image = denoiser(read_exr(next(Path(store).parent.glob("renders/*/spp0004.exr"))))
     assert np.isfinite(image.diffuse).all() and (image.diffuse >= 0).all()
+    partner = start_partner(["diffuse", "specular"], settings, None, torch.device("cpu"))
+    rates = {name: opt.param_groups[0]["lr"] for name, opt in partner.optimizers.items()}
+    assert (
+        rates == {"diffuse": settings.oidn_lr_large, "specular": settings.oidn_lr}
+        and rates["diffuse"] < settings.oidn_lr
+    )
     with pytest.raises(ValueError, match="^oidn_network: 'huge' is not one of"):
         TrainSettings(oidn_network="huge").check()
 

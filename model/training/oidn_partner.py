@@ -178,7 +178,12 @@ def start_partner(
         else:
             net = oidn_unet(b, settings.oidn_network)
         nets[name] = net.to(device, memory_format=MEMORY_FORMAT).train()
-    optimizers = {name: torch.optim.Adam(net.parameters(), lr=settings.oidn_lr) for name, net in nets.items()}
+    optimizers = {
+        name: torch.optim.Adam(
+            net.parameters(), lr=settings.oidn_lr_large if uses_clean_guides(net) else settings.oidn_lr
+        )
+        for name, net in nets.items()
+    }
     return Partner(nets, optimizers, settings.oidn_select)
 
 
