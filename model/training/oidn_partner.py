@@ -11,6 +11,12 @@ keeps its raw references beside cleaned targets (tile.clean_targets), each branc
 ships it. On three domains of scripts/make_domain_scenes.py this took OIDN's error to 0.84-0.98x at 4 spp and
 about 0.9x at 16 and 64 spp (docs/results/2026-12-06-fine-tuned-oidn.md).
 
+With train.oidn_network = "large" the diffuse branch starts from OIDN's final-frame route instead: its large
+network for clean guides, on albedo and normal OIDN's own guide networks denoise first (PrefilteredGuides; the val
+rows once), at its own rate (train.oidn_lr_large: at oidn_lr it lost HDR-FLIP within 100 steps). On an interior
+its blend scored below the standard partner's in every cell of Table 1 (docs/results/2026-12-07-oidn-final-frame-
+route.md).
+
 The networks train and validate in float32 whatever train.precision says: the OIDN library runs them in
 float32, and trained in bf16 autocast (2.4x the steps in the same minutes on an AMX Xeon) they ended with 3-5%
 more HDR-FLIP on a product domain's test frames. They are channels_last like admc's (1.35x the steps of NCHW
@@ -227,10 +233,8 @@ def finetune_partner(
             for b in readers:
                 batch = next(streams[b])  # one batch for both of a branch's candidates: a fair trial
                 for name in partner.candidates(b):
-                    net = partner.nets[name]
-                    target = "raw_reference" if name.endswith(RAW) else "reference"
-                    x, target = _pairs(batch, b, target, device)
-                    loss = oidn_loss(net(x), target, settings.oidn_loss)
+                    x, target = _pairs(batch, b, "raw_reference" if name.endswith(RAW) else "reference", device)
+                    loss = oidn_loss(partner.nets[name](x), target, settings.oidn_loss)
                     partner.optimizers[name].zero_grad(set_to_none=True)
                     loss.backward()
                     partner.optimizers[name].step()
