@@ -13,9 +13,9 @@ about 0.9x at 16 and 64 spp (docs/results/2026-12-06-fine-tuned-oidn.md).
 
 With train.oidn_network = "large" the diffuse branch starts from OIDN's final-frame route instead: its large
 network for clean guides, on albedo and normal OIDN's own guide networks denoise first (PrefilteredGuides; the val
-rows once), at its own rate (train.oidn_lr_large: at oidn_lr it lost HDR-FLIP within 100 steps). On an interior
-its blend scored below the standard partner's in every cell of Table 1 (docs/results/2026-12-07-oidn-final-frame-
-route.md).
+rows once), at its own rate (train.oidn_lr_large: at oidn_lr it lost HDR-FLIP within 100 steps). On two interiors
+its blend scored below the standard partner's in every cell of Table 1:
+docs/results/2026-12-08-oidn-final-frame-route.md.
 
 The networks train and validate in float32 whatever train.precision says: the OIDN library runs them in
 float32, and trained in bf16 autocast (2.4x the steps in the same minutes on an AMX Xeon) they ended with 3-5%
