@@ -8,6 +8,8 @@ an ensemble they run over the same symmetries as admc's networks (symmetry.py; n
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -30,6 +32,13 @@ def partner_archives(states: dict[str, dict], where: str) -> dict[str, bytes]:
     return archives
 
 
+@functools.lru_cache(maxsize=8)
+def takes_clean_guides(archive: bytes) -> bool:
+    """Whether a partner archive holds OIDN's large network, which runs on prefiltered guides: parsed once per
+    archive (7 ms for the large one), not at every image and ensemble pass that asks."""
+    return uses_clean_guides(read_archive(archive))
+
+
 def partner_bases(
     archives: dict[str, bytes], clean: dict[str, np.ndarray], branches: tuple[str, ...], ensemble: int = 1
 ) -> dict[str, np.ndarray]:
@@ -38,7 +47,7 @@ def partner_bases(
     out = {}
     for branch in branches:
         guides = branch == "diffuse"
-        prefiltered = guides and uses_clean_guides(read_archive(archives[branch]))
+        prefiltered = guides and takes_clean_guides(archives[branch])
         total = np.zeros_like(clean[branch], dtype=np.float32)
         for code in ENSEMBLE_CODES[ensemble]:
             color = _image(apply(_tensor(clean[branch]), code))

@@ -222,7 +222,7 @@ class OidnUNetLarge(OidnUNet):
 
 def network_for(state: dict, in_channels: int) -> OidnUNet:
     """An untrained network of the architecture whose parameters `state` (a state dict or archive) holds."""
-    return (OidnUNetLarge if "enc_conv1a.weight" in state else OidnUNet)(in_channels)
+    return (OidnUNetLarge if uses_clean_guides(state) else OidnUNet)(in_channels)
 
 
 def uses_clean_guides(net_or_state) -> bool:
@@ -270,9 +270,6 @@ def _library_weights(branch: str) -> dict[str, np.ndarray]:
     channels = INPUT_CHANNELS[branch]
     probe = _probe_image(channels)
     expected = oidn.denoise(*probe, quality="high")
-    tensors = [torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None] for a in probe if a is not None]
-    exposure = autoexposure(probe[0])
-    scale = float(np.abs(expected).mean())
     best, best_error = None, np.inf
     for archive in library_archives():
         if (
@@ -281,11 +278,7 @@ def _library_weights(branch: str) -> dict[str, np.ndarray]:
             or archive["enc_conv2.weight"].shape[0] != 48
         ):
             continue
-        net = OidnUNet(channels)
-        net.load_state_dict({name: torch.from_numpy(value) for name, value in archive.items()})
-        with torch.no_grad():
-            out = net.eval().denoise(*tensors[:1], exposure, *tensors[1:])[0].numpy().transpose(1, 2, 0)
-        error = float(np.abs(out - expected).mean()) / scale
+        error = _probe_error(OidnUNet(channels), archive, probe, expected)
         if error < best_error:
             best, best_error = archive, error
     if best is None or best_error > MATCH_TOLERANCE:
@@ -302,19 +295,13 @@ def _large_library_weights() -> dict[str, np.ndarray]:
     the others: on the probe with guides it has prefiltered, run with cleanAux."""
     from admc.common import oidn
 
-    probe = _probe_image(INPUT_CHANNELS["diffuse"])
-    albedo, normal = oidn.prefilter("albedo", probe[1]), oidn.prefilter("normal", probe[2])
-    expected = oidn.denoise(probe[0], albedo, normal, quality="high", clean_aux=True)
-    tensors = [torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None] for a in (probe[0], albedo, normal)]
-    scale = float(np.abs(expected).mean())
+    color, albedo, normal = _probe_image(INPUT_CHANNELS["diffuse"])
+    probe = color, oidn.prefilter("albedo", albedo), oidn.prefilter("normal", normal)
+    expected = oidn.denoise(*probe, quality="high", clean_aux=True)
     for archive in library_archives():
         if archive.get("enc_conv1a.weight", np.empty((0, 0))).shape[1] != INPUT_CHANNELS["diffuse"]:
             continue
-        net = OidnUNetLarge(INPUT_CHANNELS["diffuse"])
-        net.load_state_dict({name: torch.from_numpy(value) for name, value in archive.items()})
-        with torch.no_grad():
-            out = net.eval().denoise(tensors[0], autoexposure(probe[0]), *tensors[1:])[0].numpy().transpose(1, 2, 0)
-        error = float(np.abs(out - expected).mean()) / scale
+        error = _probe_error(OidnUNetLarge(INPUT_CHANNELS["diffuse"]), archive, probe, expected)
         if error <= MATCH_TOLERANCE:
             return archive
         raise ArchiveError(
@@ -322,6 +309,16 @@ def _large_library_weights() -> dict[str, np.ndarray]:
             "apart): an OIDN version admc does not know"
         )
     raise ArchiveError("OIDN's library carries no large network for albedo and normal guides (OIDN 2.2 or later does)")
+
+
+def _probe_error(net: OidnUNet, archive: dict, probe: tuple, expected: np.ndarray) -> float:
+    """The mean relative difference between `net` with `archive`'s weights on the probe (colour[, albedo,
+    normal]) and OIDN's own output `expected`."""
+    net.load_state_dict({name: torch.from_numpy(value) for name, value in archive.items()})
+    tensors = [torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))[None] for a in probe if a is not None]
+    with torch.no_grad():
+        out = net.eval().denoise(tensors[0], autoexposure(probe[0]), *tensors[1:])[0].numpy().transpose(1, 2, 0)
+    return float(np.abs(out - expected).mean() / np.abs(expected).mean())
 
 
 def _probe_image(channels: int, size: int = 32) -> tuple:

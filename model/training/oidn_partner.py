@@ -34,7 +34,6 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from admc.common import oidn
 from admc.common.layout import ALBEDO, NORMAL, RAW, branch_of
 from admc.common.metrics import hdr_flip, relmse_torch
 from admc.errors import TrainingError
@@ -304,9 +303,8 @@ class PrefilteredGuides:
         item = self.reader[i]
         features = item["features"].copy()
         if i not in self.guides:
-            albedo, normal = features[ALBEDO].transpose(1, 2, 0), features[NORMAL].transpose(1, 2, 0) * 2 - 1
-            albedo, normal = oidn.prefilter("albedo", albedo), oidn.prefilter("normal", normal)
-            self.guides[i] = albedo.transpose(2, 0, 1), normal.transpose(2, 0, 1) * 0.5 + 0.5
+            albedo, normal = clean_guides(*_guides(torch.from_numpy(features)[None], "diffuse"))
+            self.guides[i] = albedo[0].numpy(), normal[0].numpy() * 0.5 + 0.5
         features[ALBEDO], features[NORMAL] = self.guides[i]
         return {**item, "features": features}
 

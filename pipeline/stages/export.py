@@ -8,10 +8,9 @@ from admc.common.buffers import MISSING_LAYERS
 from admc.errors import AdmcError
 from admc.model.inference.denoiser import LOG_MAX, load_denoiser
 from admc.model.inference.onnx_export import MANIFEST_NAME, export_generator, export_manifest
-from admc.model.nets.oidn_unet import uses_clean_guides
+from admc.model.inference.fine_tuned_oidn import takes_clean_guides
 from admc.model.transforms import transform_spec
 from admc.stores.atomic import publishing, write_json
-from admc.stores.oidn_archives import read_archive
 
 
 class ExportError(AdmcError, ValueError):
@@ -40,7 +39,7 @@ def export_onnx(weights: Path, out_dir: Path) -> list[Path]:
             with publishing(out_dir / name) as tmp:
                 tmp.write_bytes(denoiser.oidn_partner[branch])
             written.append(out_dir / name)
-        prefiltered = tuple(b for b in partner if uses_clean_guides(read_archive(denoiser.oidn_partner[b])))
+        prefiltered = tuple(b for b in partner if takes_clean_guides(denoiser.oidn_partner[b]))
         manifest = export_manifest(
             generators, transform_spec(), LOG_MAX, MISSING_LAYERS, denoiser.oidn_blend, partner or None, prefiltered
         )
